@@ -1,0 +1,181 @@
+//! Shortest-edge-collapse decimation that keeps a closed manifold closed and manifold.
+//!
+//! The mesher must sample finely enough to resolve the thinnest limb, which gives far more vertices
+//! than the training kit wants (the paper's SMAL meshes have 3,889). Collapsing the shortest edges
+//! first yields near-uniform edge lengths; each collapse is checked against the link condition
+//! (topology is kept) and against triangle flips (orientation is kept), and the merged vertex is
+//! projected back onto the implicit surface.
+
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+
+use nalgebra::{Point3, Vector3};
+
+use crate::implicit::Body;
+use crate::mesh::Mesh;
+
+/// Collapses may not create a triangle with an angle below this (radians, ~5 degrees) unless they
+/// improve it: cotangent Laplacians degrade on slivers.
+const MIN_ANGLE: f64 = 0.09;
+
+fn min_angle(corners: [u32; 3], moved: u32, to: &Point3<f64>, positions: &[Point3<f64>]) -> f64 {
+    let at = |v: u32| if v == moved { *to } else { positions[v as usize] };
+    let [a, b, c] = corners.map(at);
+    let angle = |p: Point3<f64>, q: Point3<f64>, r: Point3<f64>| (q - p).angle(&(r - p));
+    angle(a, b, c).min(angle(b, c, a)).min(angle(c, a, b))
+}
+
+/// Ordered f64 for the heap (lengths are finite and non-negative).
+#[derive(Debug, Clone, Copy, PartialEq, PartialOrd)]
+struct Length(f64);
+impl Eq for Length {}
+impl Ord for Length {
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        self.0.total_cmp(&other.0)
+    }
+}
+
+struct Working {
+    positions: Vec<Point3<f64>>,
+    triangles: Vec<[u32; 3]>,
+    triangle_alive: Vec<bool>,
+    vertex_alive: Vec<bool>,
+    /// Live triangles incident to each vertex.
+    incident: Vec<Vec<u32>>,
+}
+
+impl Working {
+    fn neighbours(&self, vertex: u32) -> Vec<u32> {
+        let mut out: Vec<u32> = self.incident[vertex as usize]
+            .iter()
+            .flat_map(|&t| self.triangles[t as usize])
+            .filter(|&v| v != vertex)
+            .collect();
+        out.sort_unstable();
+        out.dedup();
+        out
+    }
+
+    fn normal(&self, corners: [u32; 3], moved: u32, to: &Point3<f64>) -> Vector3<f64> {
+        let at = |v: u32| if v == moved { *to } else { self.positions[v as usize] };
+        let [a, b, c] = corners.map(at);
+        (b - a).cross(&(c - a))
+    }
+}
+
+/// Collapses edges, shortest first, until `target_vertices` remain or no edge can go.
+pub fn decimate(mesh: &Mesh, body: &Body, target_vertices: usize) -> Mesh {
+    let mut w = Working {
+        positions: mesh.positions.clone(),
+        triangles: mesh.triangles.clone(),
+        triangle_alive: vec![true; mesh.triangles.len()],
+        vertex_alive: vec![true; mesh.positions.len()],
+        incident: vec![Vec::new(); mesh.positions.len()],
+    };
+    for (index, t) in mesh.triangles.iter().enumerate() {
+        for &v in t {
+            w.incident[v as usize].push(index as u32);
+        }
+    }
+    let length = |w: &Working, a: u32, b: u32| (w.positions[a as usize] - w.positions[b as usize]).norm();
+    let mut heap: BinaryHeap<Reverse<(Length, u32, u32)>> = mesh
+        .edges()
+        .into_iter()
+        .map(|(a, b)| Reverse((Length(length(&w, a, b)), a, b)))
+        .collect();
+    let mut alive_vertices = mesh.positions.len();
+    let projection_step = 1e-4;
+
+    while alive_vertices > target_vertices {
+        let Some(Reverse((Length(stored), a, b))) = heap.pop() else {
+            break;
+        };
+        if !w.vertex_alive[a as usize] || !w.vertex_alive[b as usize] || (length(&w, a, b) - stored).abs() > 1e-15 {
+            continue; // stale entry
+        }
+        let shared_triangles: Vec<u32> = w.incident[a as usize]
+            .iter()
+            .copied()
+            .filter(|t| w.triangles[*t as usize].contains(&b))
+            .collect();
+        if shared_triangles.len() != 2 {
+            continue;
+        }
+        // Link condition: a and b may share only the two vertices opposite their common edge.
+        let (around_a, around_b) = (w.neighbours(a), w.neighbours(b));
+        let common = around_a.iter().filter(|v| around_b.binary_search(v).is_ok()).count();
+        if common != 2 || around_a.len() <= 3 || around_b.len() <= 3 {
+            continue;
+        }
+        let mut merged = Point3::from((w.positions[a as usize].coords + w.positions[b as usize].coords) * 0.5);
+        let gradient = body.gradient(&merged, projection_step);
+        if gradient.norm_squared() > 1e-12 {
+            merged -= gradient * (body.distance(&merged) / gradient.norm_squared());
+        }
+        // Reject collapses that flip or crush any surviving triangle around a or b.
+        let survivors: Vec<u32> = w.incident[a as usize]
+            .iter()
+            .chain(&w.incident[b as usize])
+            .copied()
+            .filter(|t| !shared_triangles.contains(t))
+            .collect();
+        let acceptable = survivors.iter().all(|&t| {
+            let corners = w.triangles[t as usize];
+            let moved = if corners.contains(&a) { a } else { b };
+            let before = w.normal(corners, moved, &w.positions[moved as usize]);
+            let after = w.normal(corners, moved, &merged);
+            let keeps_orientation = after.dot(&before) > 0.3 * before.norm() * after.norm();
+            let quality_after = min_angle(corners, moved, &merged, &w.positions);
+            let quality_before = min_angle(corners, moved, &w.positions[moved as usize], &w.positions);
+            keeps_orientation && (quality_after >= MIN_ANGLE || quality_after >= quality_before)
+        });
+        if !acceptable {
+            continue;
+        }
+        for &t in &shared_triangles {
+            w.triangle_alive[t as usize] = false;
+        }
+        let mut incident_a: Vec<u32> = Vec::new();
+        for &t in &survivors {
+            let corners = &mut w.triangles[t as usize];
+            corners.iter_mut().filter(|v| **v == b).for_each(|v| *v = a);
+            if !incident_a.contains(&t) {
+                incident_a.push(t);
+            }
+        }
+        w.incident[a as usize] = incident_a;
+        w.incident[b as usize].clear();
+        w.vertex_alive[b as usize] = false;
+        w.positions[a as usize] = merged;
+        alive_vertices -= 1;
+        for &t in &shared_triangles {
+            for v in w.triangles[t as usize] {
+                if v != a && v != b {
+                    w.incident[v as usize].retain(|x| *x != t);
+                }
+            }
+        }
+        for n in w.neighbours(a) {
+            let (lo, hi) = (a.min(n), a.max(n));
+            heap.push(Reverse((Length(length(&w, lo, hi)), lo, hi)));
+        }
+    }
+
+    // Compact.
+    let mut new_index = vec![u32::MAX; w.positions.len()];
+    let mut positions = Vec::with_capacity(alive_vertices);
+    for (old, alive) in w.vertex_alive.iter().enumerate() {
+        if *alive {
+            new_index[old] = positions.len() as u32;
+            positions.push(w.positions[old]);
+        }
+    }
+    let triangles = w
+        .triangles
+        .iter()
+        .zip(&w.triangle_alive)
+        .filter(|(_, alive)| **alive)
+        .map(|(t, _)| t.map(|v| new_index[v as usize]))
+        .collect();
+    Mesh { positions, triangles }
+}

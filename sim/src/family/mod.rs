@@ -1,0 +1,292 @@
+//! Articulated families and their subjects.
+//!
+//! A family maps intrinsic parameters `beta` (proportions: they change the surface metric and so
+//! the Laplace-Beltrami spectrum) to a rest-pose skeleton and implicit body. A [`Subject`] is one
+//! beta, meshed once; its poses `theta` are produced by skinning that one rest mesh, so every pose of
+//! a subject shares its connectivity and articulation stays measurably close to isometric.
+
+mod biped;
+mod quadruped;
+
+use nalgebra::Vector3;
+use rand::Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::Serialize;
+
+use crate::implicit::Body;
+use crate::mesh::{Mesh, MeshDefect};
+use crate::meshing::{mesh_body, spacing_for, MeshingSettings};
+use crate::skeleton::Skeleton;
+use crate::skinning::{skin, skin_weights, SkinWeights};
+
+/// One intrinsic parameter: its name, plausible range (the uniform sampling prior) and meaning.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct BetaParameter {
+    pub name: &'static str,
+    pub min: f64,
+    pub max: f64,
+    pub description: &'static str,
+}
+
+impl BetaParameter {
+    pub const fn new(name: &'static str, min: f64, max: f64, description: &'static str) -> Self {
+        Self {
+            name,
+            min,
+            max,
+            description,
+        }
+    }
+}
+
+/// A skeleton, the implicit body around it, and how freely each joint moves (a multiplier on the
+/// pose prior's standard deviation; 0 for the root).
+pub struct Anatomy {
+    pub skeleton: Skeleton,
+    pub body: Body,
+    pub mobility: Vec<f64>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Family {
+    Quadruped,
+    Biped,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SubjectError {
+    #[error("{family:?} expects {expected} beta values, got {actual}")]
+    BetaLength {
+        family: Family,
+        expected: usize,
+        actual: usize,
+    },
+    #[error("beta parameter '{name}' = {value} is outside its range [{min}, {max}]")]
+    BetaOutOfRange {
+        name: &'static str,
+        value: f64,
+        min: f64,
+        max: f64,
+    },
+    #[error("theta has {actual} values; this family's skeleton expects {expected}")]
+    ThetaLength { expected: usize, actual: usize },
+    #[error("meshing produced an invalid surface: {0}")]
+    InvalidMesh(#[from] MeshDefect),
+}
+
+impl Family {
+    pub const ALL: [Family; 2] = [Family::Quadruped, Family::Biped];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Family::Quadruped => "quadruped",
+            Family::Biped => "biped",
+        }
+    }
+
+    pub fn beta_parameters(self) -> &'static [BetaParameter] {
+        match self {
+            Family::Quadruped => quadruped::BETA,
+            Family::Biped => biped::BETA,
+        }
+    }
+
+    /// The skeleton at the family's mid-range proportions (joint names and count do not depend on beta).
+    pub fn reference_skeleton(self) -> Skeleton {
+        self.anatomy(&self.mean_beta()).skeleton
+    }
+
+    pub fn mean_beta(self) -> Vec<f64> {
+        self.beta_parameters().iter().map(|b| 0.5 * (b.min + b.max)).collect()
+    }
+
+    /// Uniform over each parameter's range.
+    pub fn sample_beta(self, rng: &mut impl Rng) -> Vec<f64> {
+        self.beta_parameters()
+            .iter()
+            .map(|b| rng.random_range(b.min..=b.max))
+            .collect()
+    }
+
+    pub fn check_beta(self, beta: &[f64]) -> Result<(), SubjectError> {
+        let parameters = self.beta_parameters();
+        if beta.len() != parameters.len() {
+            return Err(SubjectError::BetaLength {
+                family: self,
+                expected: parameters.len(),
+                actual: beta.len(),
+            });
+        }
+        for (parameter, &value) in parameters.iter().zip(beta) {
+            // `!(a <= v && v <= b)` also rejects NaN.
+            if !(parameter.min <= value && value <= parameter.max) {
+                return Err(SubjectError::BetaOutOfRange {
+                    name: parameter.name,
+                    value,
+                    min: parameter.min,
+                    max: parameter.max,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    fn anatomy(self, beta: &[f64]) -> Anatomy {
+        match self {
+            Family::Quadruped => quadruped::build(beta),
+            Family::Biped => biped::build(beta),
+        }
+    }
+}
+
+impl std::str::FromStr for Family {
+    type Err = String;
+    fn from_str(text: &str) -> Result<Self, String> {
+        Family::ALL
+            .into_iter()
+            .find(|f| f.name() == text)
+            .ok_or_else(|| format!("unknown family '{text}' (known: quadruped, biped)"))
+    }
+}
+
+/// How poses are drawn from the prior.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PoseMode {
+    /// The rest pose (theta = 0).
+    Rest,
+    /// Gaussian about the rest pose, sigma 0.2 rad per bending axis (as the paper's SMAL/SMPL data).
+    Gaussian,
+    /// The wider "bent" mode: sigma 0.5 rad per bending axis.
+    Bent,
+}
+
+impl PoseMode {
+    pub fn bend_sigma(self) -> f64 {
+        match self {
+            PoseMode::Rest => 0.0,
+            PoseMode::Gaussian => 0.2,
+            PoseMode::Bent => 0.5,
+        }
+    }
+}
+
+/// Twist about a bone is much stiffer than bending it (and is what breaks isometry when overdone).
+const TWIST_TO_BEND: f64 = 0.3;
+
+/// Vertices per subject mesh (the paper's SMAL meshes have 3,889).
+pub const DEFAULT_VERTEX_COUNT: usize = 4000;
+
+/// Meshing grid resolutions tried in turn (cells across the thinnest part's radius).
+const CELLS_PER_MIN_RADIUS: [f64; 3] = [1.4, 2.0, 3.0];
+
+/// Skinning-weight falloff as a multiple of each part's radius, and rounds of diffusion over the
+/// mesh: wider blending spreads a joint's bend over more surface and so stretches each edge less.
+const SKIN_FALLOFF_PER_RADIUS: f64 = 0.4;
+const SKIN_DIFFUSION_ROUNDS: usize = 4;
+
+/// One individual: a beta, its rest mesh and skinning weights. Built once, posed many times.
+pub struct Subject {
+    pub family: Family,
+    pub beta: Vec<f64>,
+    pub skeleton: Skeleton,
+    pub body: Body,
+    pub rest_mesh: Mesh,
+    pub weights: SkinWeights,
+    mobility: Vec<f64>,
+}
+
+impl Subject {
+    pub fn new(family: Family, beta: Vec<f64>) -> Result<Self, SubjectError> {
+        Self::with_vertex_count(family, beta, DEFAULT_VERTEX_COUNT)
+    }
+
+    pub fn with_vertex_count(family: Family, beta: Vec<f64>, target_vertices: usize) -> Result<Self, SubjectError> {
+        family.check_beta(&beta)?;
+        let Anatomy {
+            skeleton,
+            body,
+            mobility,
+        } = family.anatomy(&beta);
+        // Coarse grids are fast but may miss a thin limb; validation decides, finer grids retry.
+        let mut outcome = Err(MeshDefect::Empty);
+        for cells in CELLS_PER_MIN_RADIUS {
+            let settings = MeshingSettings {
+                spacing: spacing_for(&body, cells),
+                target_vertices,
+                relaxation_rounds: 3,
+            };
+            let mesh = mesh_body(&body, settings);
+            outcome = mesh.validate().map(|_| mesh);
+            if outcome.is_ok() {
+                break;
+            }
+        }
+        let rest_mesh = outcome?;
+        let weights = skin_weights(
+            &rest_mesh,
+            &body,
+            &skeleton,
+            SKIN_FALLOFF_PER_RADIUS,
+            SKIN_DIFFUSION_ROUNDS,
+        );
+        Ok(Self {
+            family,
+            beta,
+            skeleton,
+            body,
+            rest_mesh,
+            weights,
+            mobility,
+        })
+    }
+
+    pub fn pose_dimension(&self) -> usize {
+        self.skeleton.pose_dimension()
+    }
+
+    /// The subject's mesh in pose `theta` (axis-angle per non-root joint, world-aligned rest frame).
+    pub fn pose(&self, theta: &[f64]) -> Result<Mesh, SubjectError> {
+        if theta.len() != self.pose_dimension() {
+            return Err(SubjectError::ThetaLength {
+                expected: self.pose_dimension(),
+                actual: theta.len(),
+            });
+        }
+        let transforms = self
+            .skeleton
+            .posed_from_rest(&self.skeleton.rotations_from_theta(theta));
+        Ok(skin(&self.rest_mesh, &self.weights, &transforms))
+    }
+
+    /// A pose from the prior: per joint, Gaussian bending about two axes orthogonal to the bone and
+    /// a smaller twist about it, scaled by the joint's mobility.
+    pub fn sample_theta(&self, mode: PoseMode, rng: &mut impl Rng) -> Vec<f64> {
+        let sigma = mode.bend_sigma();
+        let mut theta = Vec::with_capacity(self.pose_dimension());
+        for joint in 1..self.skeleton.len() {
+            let parent = self.skeleton.joints[joint].parent.unwrap_or(0);
+            let incoming = (self.skeleton.joints[joint].rest_position - self.skeleton.joints[parent].rest_position)
+                .try_normalize(1e-12)
+                .unwrap_or_else(Vector3::z);
+            let along = self.skeleton.bone_direction(joint, incoming);
+            let across = along
+                .cross(&Vector3::z())
+                .try_normalize(1e-9)
+                .unwrap_or_else(Vector3::x);
+            let across_too = along.cross(&across);
+            let mut normal = || -> f64 { StandardNormal.sample(rng) };
+            let scale = sigma * self.mobility[joint];
+            let rotation =
+                scale * (normal() * across + normal() * across_too) + TWIST_TO_BEND * scale * normal() * along;
+            theta.extend_from_slice(rotation.as_slice());
+        }
+        theta
+    }
+}
+
+#[doc(hidden)]
+pub fn debug_anatomy(family: Family, beta: &[f64]) -> Anatomy {
+    family.anatomy(beta)
+}
