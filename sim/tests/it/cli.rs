@@ -1,0 +1,36 @@
+//! The `sim` binary: commands succeed on good input and fail clearly on bad input.
+
+use std::process::Command;
+
+fn sim(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_sim")).args(args).output().expect("sim runs")
+}
+
+#[test]
+fn bad_arguments_fail_with_a_message_naming_them() {
+    let out_dir = tempfile::tempdir().unwrap();
+    let out = out_dir.path().to_str().unwrap();
+    for (args, expected) in [
+        (vec!["dataset", "--out", out, "--subjects", "0"], "subjects"),
+        (vec!["dataset", "--out", out, "--split", "0.9,0.9,0.9"], "split"),
+        (vec!["dataset", "--out", out, "--bent-fraction", "2"], "bent-fraction"),
+        (vec!["dataset", "--out", out, "--families", "fish"], "fish"),
+        (vec!["distortion", "--poses", "-3"], "-3"),
+    ] {
+        let output = sim(&args);
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{args:?} should fail");
+        assert!(stderr.contains(expected), "{args:?}: stderr does not name '{expected}':\n{stderr}");
+        assert!(!stderr.contains("panicked"), "{args:?} panicked:\n{stderr}");
+    }
+}
+
+#[test]
+fn mesh_command_writes_a_readable_ply() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("biped.ply");
+    let output = sim(&["mesh", "--family", "biped", "--pose", "gaussian", "--out", path.to_str().unwrap()]);
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let (vertices, faces) = crate::util::read_ply(&path);
+    assert!(vertices.len() > 1000 && faces.len() == 2 * vertices.len() - 4, "genus 0: F = 2V - 4");
+}

@@ -1,0 +1,6 @@
+//! The simulator's integration tests: one binary, a module per area.
+
+mod cli;
+mod dataset;
+mod meshes;
+mod util;
