@@ -47,10 +47,18 @@ pub struct DatasetSpec {
 pub enum DatasetError {
     #[error("invalid dataset parameter '{parameter}': {reason}")]
     InvalidParameter { parameter: &'static str, reason: String },
-    #[error("cannot write {path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
-    #[error("subject {subject}: {source}")]
-    Subject { subject: String, source: SubjectError },
+    #[error("cannot write {path}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("subject {subject}")]
+    Subject {
+        subject: String,
+        #[source]
+        source: SubjectError,
+    },
 }
 
 fn invalid(parameter: &'static str, reason: impl Into<String>) -> DatasetError {

@@ -14,15 +14,19 @@ use nalgebra::{Point3, Vector3};
 use crate::implicit::Body;
 use crate::mesh::Mesh;
 
-/// Collapses may not create a triangle with an angle below this (radians, ~5 degrees) unless they
-/// improve it: cotangent Laplacians degrade on slivers.
-const MIN_ANGLE: f64 = 0.09;
+/// Collapses may not create a triangle with an angle below ~5 degrees (cosine above this) unless
+/// they improve it: cotangent Laplacians degrade on slivers.
+const MAX_COSINE: f64 = 0.996;
 
-fn min_angle(corners: [u32; 3], moved: u32, to: &Point3<f64>, positions: &[Point3<f64>]) -> f64 {
+/// Cosine of the smallest angle of the triangle with `moved` placed at `to`.
+fn smallest_angle_cosine(corners: [u32; 3], moved: u32, to: &Point3<f64>, positions: &[Point3<f64>]) -> f64 {
     let at = |v: u32| if v == moved { *to } else { positions[v as usize] };
     let [a, b, c] = corners.map(at);
-    let angle = |p: Point3<f64>, q: Point3<f64>, r: Point3<f64>| (q - p).angle(&(r - p));
-    angle(a, b, c).min(angle(b, c, a)).min(angle(c, a, b))
+    let cosine = |p: Point3<f64>, q: Point3<f64>, r: Point3<f64>| {
+        let (u, v) = (q - p, r - p);
+        u.dot(&v) / (u.norm() * v.norm()).max(1e-300)
+    };
+    cosine(a, b, c).max(cosine(b, c, a)).max(cosine(c, a, b))
 }
 
 /// Ordered f64 for the heap (lengths are finite and non-negative).
@@ -125,9 +129,9 @@ pub fn decimate(mesh: &Mesh, body: &Body, target_vertices: usize) -> Mesh {
             let before = w.normal(corners, moved, &w.positions[moved as usize]);
             let after = w.normal(corners, moved, &merged);
             let keeps_orientation = after.dot(&before) > 0.3 * before.norm() * after.norm();
-            let quality_after = min_angle(corners, moved, &merged, &w.positions);
-            let quality_before = min_angle(corners, moved, &w.positions[moved as usize], &w.positions);
-            keeps_orientation && (quality_after >= MIN_ANGLE || quality_after >= quality_before)
+            let cosine_after = smallest_angle_cosine(corners, moved, &merged, &w.positions);
+            let cosine_before = smallest_angle_cosine(corners, moved, &w.positions[moved as usize], &w.positions);
+            keeps_orientation && (cosine_after <= MAX_COSINE || cosine_after <= cosine_before)
         });
         if !acceptable {
             continue;

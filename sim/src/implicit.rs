@@ -48,10 +48,12 @@ impl RoundCone {
         (relative - t * axis).norm() - radius
     }
 
+    /// Axis-aligned bounds: the radius along x and z, the radius times `lateral_scale` along y.
     fn bounds(&self) -> (Point3<f64>, Point3<f64>) {
-        let reach = self.start_radius.max(self.end_radius) * self.lateral_scale;
-        let lower = self.start.coords.inf(&self.end.coords).add_scalar(-reach);
-        let upper = self.start.coords.sup(&self.end.coords).add_scalar(reach);
+        let radius = self.start_radius.max(self.end_radius);
+        let reach = Vector3::new(radius, radius * self.lateral_scale, radius);
+        let lower = self.start.coords.inf(&self.end.coords) - reach;
+        let upper = self.start.coords.sup(&self.end.coords) + reach;
         (lower.into(), upper.into())
     }
 }
@@ -77,17 +79,13 @@ fn smooth_min(a: f64, b: f64, k: f64) -> f64 {
 }
 
 impl Body {
+    /// The blended field: the smooth minimum of the part distances, in part order.
     pub fn distance(&self, point: &Point3<f64>) -> f64 {
-        self.parts
-            .iter()
-            .map(|part| part.shape.distance(point))
-            .fold(f64::INFINITY, |acc, d| {
-                if acc.is_infinite() {
-                    d
-                } else {
-                    smooth_min(acc, d, self.blend)
-                }
-            })
+        let mut distances = self.parts.iter().map(|part| part.shape.distance(point));
+        let Some(first) = distances.next() else {
+            return f64::INFINITY;
+        };
+        distances.fold(first, |acc, d| smooth_min(acc, d, self.blend))
     }
 
     /// Central-difference gradient of the distance.

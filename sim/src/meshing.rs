@@ -26,6 +26,19 @@ const KUHN_TETRAHEDRA: [[usize; 4]; 6] = [
     [0, 4, 6, 7],
 ];
 
+/// Whether four cube corners (bit 0 = x, bit 1 = y, bit 2 = z) in this order span a positively
+/// oriented tetrahedron.
+fn positively_oriented(corners: [usize; 4]) -> bool {
+    let offset = |bits: usize| Vector3::new((bits & 1) as f64, ((bits >> 1) & 1) as f64, ((bits >> 2) & 1) as f64);
+    let origin = offset(corners[0]);
+    let (u, v, w) = (
+        offset(corners[1]) - origin,
+        offset(corners[2]) - origin,
+        offset(corners[3]) - origin,
+    );
+    u.dot(&v.cross(&w)) > 0.0
+}
+
 /// Meshing resolution and clean-up.
 #[derive(Debug, Clone, Copy)]
 pub struct MeshingSettings {
@@ -90,44 +103,43 @@ pub fn mesh_body(body: &Body, settings: MeshingSettings) -> Mesh {
                     continue;
                 }
                 for tetrahedron in KUHN_TETRAHEDRA {
-                    let corners = tetrahedron.map(|bits| cube[bits]);
-                    let (inside, outside): (Vec<usize>, Vec<usize>) = corners.iter().partition(|&&i| values[i] < 0.0);
-                    let polygon: Vec<u32> = match (inside.len(), outside.len()) {
-                        (1, 3) => outside
-                            .iter()
-                            .map(|&o| crossing(inside[0], o, &mut positions))
-                            .collect(),
-                        (3, 1) => inside
-                            .iter()
-                            .map(|&i| crossing(i, outside[0], &mut positions))
-                            .collect(),
-                        (2, 2) => vec![
-                            crossing(inside[0], outside[0], &mut positions),
-                            crossing(inside[0], outside[1], &mut positions),
-                            crossing(inside[1], outside[1], &mut positions),
-                            crossing(inside[1], outside[0], &mut positions),
-                        ],
+                    let (inside, outside): (Vec<usize>, Vec<usize>) =
+                        tetrahedron.iter().partition(|&&bits| values[cube[bits]] < 0.0);
+                    let mut cross = |a: usize, b: usize| crossing(cube[a], cube[b], &mut positions);
+                    // Orientation comes from the combinatorics, never from a (possibly degenerate)
+                    // triangle's normal: for a positively oriented tetrahedron (p0, p1, p2, p3), the
+                    // crossings on edges p0-p1, p0-p2, p0-p3 in that order face away from p0.
+                    let polygon: Vec<u32> = match (inside.as_slice(), outside.as_slice()) {
+                        (&[i], &[o1, o2, o3]) => {
+                            let (o2, o3) = if positively_oriented([i, o1, o2, o3]) {
+                                (o2, o3)
+                            } else {
+                                (o3, o2)
+                            };
+                            vec![cross(i, o1), cross(i, o2), cross(i, o3)]
+                        }
+                        (&[i1, i2, i3], &[o]) => {
+                            // Faces away from the outside corner when ordered this way; reverse it.
+                            let (i2, i3) = if positively_oriented([o, i1, i2, i3]) {
+                                (i2, i3)
+                            } else {
+                                (i3, i2)
+                            };
+                            vec![cross(i1, o), cross(i3, o), cross(i2, o)]
+                        }
+                        (&[a, b], &[c, d]) => {
+                            let (c, d) = if positively_oriented([a, b, c, d]) {
+                                (c, d)
+                            } else {
+                                (d, c)
+                            };
+                            vec![cross(a, c), cross(a, d), cross(b, d), cross(b, c)]
+                        }
                         _ => continue,
                     };
-                    // Orient so the normal points from the inside corners to the outside ones.
-                    let centroid = |set: &[usize]| {
-                        set.iter().fold(Vector3::zeros(), |acc, &i| acc + grid_point(i).coords) / set.len() as f64
-                    };
-                    let outward = centroid(&outside) - centroid(&inside);
-                    let fans: &[[usize; 3]] = if polygon.len() == 4 {
-                        &[[0, 1, 2], [0, 2, 3]]
-                    } else {
-                        &[[0, 1, 2]]
-                    };
-                    for fan in fans {
-                        let [a, b, c] = fan.map(|k| polygon[k]);
-                        let (pa, pb, pc) = (positions[a as usize], positions[b as usize], positions[c as usize]);
-                        let normal = (pb - pa).cross(&(pc - pa));
-                        triangles.push(if normal.dot(&outward) >= 0.0 {
-                            [a, b, c]
-                        } else {
-                            [a, c, b]
-                        });
+                    triangles.push([polygon[0], polygon[1], polygon[2]]);
+                    if polygon.len() == 4 {
+                        triangles.push([polygon[0], polygon[2], polygon[3]]);
                     }
                 }
             }

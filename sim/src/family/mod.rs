@@ -71,7 +71,7 @@ pub enum SubjectError {
     },
     #[error("theta has {actual} values; this family's skeleton expects {expected}")]
     ThetaLength { expected: usize, actual: usize },
-    #[error("meshing produced an invalid surface: {0}")]
+    #[error("meshing produced an invalid surface")]
     InvalidMesh(#[from] MeshDefect),
 }
 

@@ -3,7 +3,10 @@
 use std::process::Command;
 
 fn sim(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_sim")).args(args).output().expect("sim runs")
+    Command::new(env!("CARGO_BIN_EXE_sim"))
+        .args(args)
+        .output()
+        .expect("sim runs")
 }
 
 #[test]
@@ -20,7 +23,10 @@ fn bad_arguments_fail_with_a_message_naming_them() {
         let output = sim(&args);
         let stderr = String::from_utf8_lossy(&output.stderr);
         assert!(!output.status.success(), "{args:?} should fail");
-        assert!(stderr.contains(expected), "{args:?}: stderr does not name '{expected}':\n{stderr}");
+        assert!(
+            stderr.contains(expected),
+            "{args:?}: stderr does not name '{expected}':\n{stderr}"
+        );
         assert!(!stderr.contains("panicked"), "{args:?} panicked:\n{stderr}");
     }
 }
@@ -29,8 +35,19 @@ fn bad_arguments_fail_with_a_message_naming_them() {
 fn mesh_command_writes_a_readable_ply() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("biped.ply");
-    let output = sim(&["mesh", "--family", "biped", "--pose", "gaussian", "--out", path.to_str().unwrap()]);
+    let output = sim(&[
+        "mesh",
+        "--family",
+        "biped",
+        "--pose",
+        "gaussian",
+        "--out",
+        path.to_str().unwrap(),
+    ]);
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     let (vertices, faces) = crate::util::read_ply(&path);
-    assert!(vertices.len() > 1000 && faces.len() == 2 * vertices.len() - 4, "genus 0: F = 2V - 4");
+    assert!(
+        vertices.len() > 1000 && faces.len() == 2 * vertices.len() - 4,
+        "genus 0: F = 2V - 4"
+    );
 }

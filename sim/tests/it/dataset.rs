@@ -19,7 +19,11 @@ fn read_truth(dir: &std::path::Path) -> Vec<GroundTruth> {
 
 #[test]
 fn same_seed_gives_identical_files_and_another_seed_does_not() {
-    let (a, b, c) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let (a, b, c) = (
+        tempfile::tempdir().unwrap(),
+        tempfile::tempdir().unwrap(),
+        tempfile::tempdir().unwrap(),
+    );
     let mut spec = small_spec(5);
     spec.subjects_per_family = 2;
     write_small(&spec, a.path());
@@ -27,12 +31,21 @@ fn same_seed_gives_identical_files_and_another_seed_does_not() {
     spec.seed = 6;
     write_small(&spec, c.path());
     for name in ["ground_truth.jsonl", "splits.json"] {
-        assert_eq!(std::fs::read(a.path().join(name)).unwrap(), std::fs::read(b.path().join(name)).unwrap(), "{name}");
+        assert_eq!(
+            std::fs::read(a.path().join(name)).unwrap(),
+            std::fs::read(b.path().join(name)).unwrap(),
+            "{name}"
+        );
     }
     let truth = read_truth(a.path());
     for record in &truth {
         let bytes_a = std::fs::read(a.path().join(&record.file)).unwrap();
-        assert_eq!(bytes_a, std::fs::read(b.path().join(&record.file)).unwrap(), "{}", record.file);
+        assert_eq!(
+            bytes_a,
+            std::fs::read(b.path().join(&record.file)).unwrap(),
+            "{}",
+            record.file
+        );
     }
     assert_ne!(truth, read_truth(c.path()), "a different seed gives different data");
 }
@@ -51,11 +64,13 @@ fn ground_truth_regenerates_every_mesh_and_splits_are_subject_disjoint() {
         let (vertices, faces) = read_ply(&dir.path().join(&record.file));
         assert_eq!(vertices.len(), record.vertices);
         assert_eq!(faces.len(), record.triangles);
-        assert!(faces.iter().all(|f| f.len() == 3 && f.iter().all(|&i| (i as usize) < vertices.len())));
+        assert!(faces
+            .iter()
+            .all(|f| f.len() == 3 && f.iter().all(|&i| (i as usize) < vertices.len())));
         // Rebuild the mesh from the recorded beta, theta and yaw alone.
-        let subject = subjects
-            .entry(record.subject.clone())
-            .or_insert_with(|| Subject::with_vertex_count(record.family, record.beta.clone(), spec.target_vertices).unwrap());
+        let subject = subjects.entry(record.subject.clone()).or_insert_with(|| {
+            Subject::with_vertex_count(record.family, record.beta.clone(), spec.target_vertices).unwrap()
+        });
         let rebuilt = place(&subject.pose(&record.theta).unwrap(), record.yaw, Vector3::zeros());
         let worst = rebuilt
             .positions
@@ -68,8 +83,10 @@ fn ground_truth_regenerates_every_mesh_and_splits_are_subject_disjoint() {
 
     let splits: BTreeMap<String, Vec<String>> =
         serde_json::from_str(&std::fs::read_to_string(dir.path().join("splits.json")).unwrap()).unwrap();
-    let sets: Vec<BTreeSet<&String>> =
-        ["train", "validation", "test"].iter().map(|k| splits[*k].iter().collect()).collect();
+    let sets: Vec<BTreeSet<&String>> = ["train", "validation", "test"]
+        .iter()
+        .map(|k| splits[*k].iter().collect())
+        .collect();
     for i in 0..3 {
         assert!(!sets[i].is_empty(), "split {i} is empty");
         for j in i + 1..3 {
@@ -82,7 +99,11 @@ fn ground_truth_regenerates_every_mesh_and_splits_are_subject_disjoint() {
             Split::Validation => &sets[1],
             Split::Test => &sets[2],
         };
-        assert!(listed.contains(&record.subject), "{} is not in its split's list", record.subject);
+        assert!(
+            listed.contains(&record.subject),
+            "{} is not in its split's list",
+            record.subject
+        );
     }
 
     let description: serde_json::Value =

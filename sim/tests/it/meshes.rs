@@ -25,7 +25,11 @@ fn validation_accepts_a_closed_outward_tetrahedron() {
 fn validation_names_each_defect() {
     let mut open = tetrahedron(0.0);
     open.triangles.pop();
-    assert!(matches!(open.validate(), Err(MeshDefect::EdgeNotManifold(..))), "{:?}", open.validate());
+    assert!(
+        matches!(open.validate(), Err(MeshDefect::EdgeNotManifold(..))),
+        "{:?}",
+        open.validate()
+    );
 
     let mut flipped = tetrahedron(0.0);
     flipped.triangles[0] = [0, 1, 2];
@@ -38,7 +42,12 @@ fn validation_names_each_defect() {
     let (a, b) = (tetrahedron(0.0), tetrahedron(5.0));
     let two = Mesh {
         positions: a.positions.iter().chain(&b.positions).copied().collect(),
-        triangles: a.triangles.iter().copied().chain(b.triangles.iter().map(|t| t.map(|v| v + 4))).collect(),
+        triangles: a
+            .triangles
+            .iter()
+            .copied()
+            .chain(b.triangles.iter().map(|t| t.map(|v| v + 4)))
+            .collect(),
     };
     assert_eq!(two.validate().unwrap_err(), MeshDefect::NotGenusZero(4));
 
@@ -62,13 +71,22 @@ fn subjects_are_valid_manifolds_across_the_beta_range() {
         for beta in betas {
             let subject = Subject::new(family, beta.clone()).unwrap_or_else(|e| panic!("{family:?} {beta:?}: {e}"));
             let rest = subject.rest_mesh.validate().expect("rest mesh valid");
-            assert!((2000..=7500).contains(&rest.vertices), "{family:?}: {} vertices", rest.vertices);
+            assert!(
+                (2000..=7500).contains(&rest.vertices),
+                "{family:?}: {} vertices",
+                rest.vertices
+            );
             for mode in [PoseMode::Gaussian, PoseMode::Bent] {
                 let theta = subject.sample_theta(mode, &mut seeds::rng(7));
                 let posed = subject.pose(&theta).expect("pose");
-                let report = posed.validate().unwrap_or_else(|e| panic!("{family:?} {mode:?} pose invalid: {e}"));
+                let report = posed
+                    .validate()
+                    .unwrap_or_else(|e| panic!("{family:?} {mode:?} pose invalid: {e}"));
                 let volume_change = (report.volume - rest.volume).abs() / rest.volume;
-                assert!(volume_change < 0.15, "{family:?} {mode:?}: volume changed by {volume_change}");
+                assert!(
+                    volume_change < 0.15,
+                    "{family:?} {mode:?}: volume changed by {volume_change}"
+                );
             }
         }
     }
@@ -99,14 +117,28 @@ fn subjects_are_deterministic() {
 fn impossible_parameters_are_rejected_with_their_name() {
     let mut beta = Family::Quadruped.mean_beta();
     beta[1] = -0.2;
-    let error = Subject::new(Family::Quadruped, beta).err().expect("negative girth rejected");
-    assert!(matches!(error, SubjectError::BetaOutOfRange { name: "torso_girth", .. }), "{error}");
+    let error = Subject::new(Family::Quadruped, beta)
+        .err()
+        .expect("negative girth rejected");
+    assert!(
+        matches!(
+            error,
+            SubjectError::BetaOutOfRange {
+                name: "torso_girth",
+                ..
+            }
+        ),
+        "{error}"
+    );
     assert!(error.to_string().contains("torso_girth"));
 
     let mut beta = Family::Biped.mean_beta();
     beta[0] = f64::NAN;
     assert!(Subject::new(Family::Biped, beta).is_err(), "NaN rejected");
-    assert!(matches!(Subject::new(Family::Biped, vec![0.5; 3]), Err(SubjectError::BetaLength { .. })));
+    assert!(matches!(
+        Subject::new(Family::Biped, vec![0.5; 3]),
+        Err(SubjectError::BetaLength { .. })
+    ));
 
     let subject = Subject::new(Family::Biped, Family::Biped.mean_beta()).unwrap();
     assert!(matches!(subject.pose(&[0.0; 5]), Err(SubjectError::ThetaLength { .. })));
@@ -121,7 +153,12 @@ fn articulation_stays_close_to_isometric() {
         let bent = measure_distortion(family, PoseMode::Bent, 2, 6, 11).unwrap();
         assert!(gaussian.p50 < 0.03, "{family:?} gaussian p50 {}", gaussian.p50);
         assert!(gaussian.p95 < 0.15, "{family:?} gaussian p95 {}", gaussian.p95);
-        assert!(bent.p95 > gaussian.p95, "{family:?} bent {} vs gaussian {}", bent.p95, gaussian.p95);
+        assert!(
+            bent.p95 > gaussian.p95,
+            "{family:?} bent {} vs gaussian {}",
+            bent.p95,
+            gaussian.p95
+        );
         let rest = measure_distortion(family, PoseMode::Rest, 1, 1, 11).unwrap();
         assert!(rest.max < 1e-9, "rest pose is exactly isometric");
     }

@@ -10,12 +10,17 @@ use ply_rs_bw::ply::{DefaultElement, Property};
 /// Vertices and faces of a PLY file, read by ply-rs-bw rather than by our own code.
 pub fn read_ply(path: &Path) -> (Vec<[f32; 3]>, Vec<Vec<i64>>) {
     let mut file = std::fs::File::open(path).unwrap_or_else(|e| panic!("open {}: {e}", path.display()));
-    let ply = Parser::<DefaultElement>::new().read_ply(&mut file).unwrap_or_else(|e| panic!("parse {}: {e}", path.display()));
+    let ply = Parser::<DefaultElement>::new()
+        .read_ply(&mut file)
+        .unwrap_or_else(|e| panic!("parse {}: {e}", path.display()));
     let scalar = |element: &DefaultElement, key: &str| match element.get(key) {
         Some(Property::Float(v)) => *v,
         other => panic!("{}: vertex property {key} is {other:?}", path.display()),
     };
-    let vertices = ply.payload["vertex"].iter().map(|v| [scalar(v, "x"), scalar(v, "y"), scalar(v, "z")]).collect();
+    let vertices = ply.payload["vertex"]
+        .iter()
+        .map(|v| [scalar(v, "x"), scalar(v, "y"), scalar(v, "z")])
+        .collect();
     let faces = ply.payload["face"]
         .iter()
         .map(|f| match f.get("vertex_indices") {
