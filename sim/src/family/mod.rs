@@ -285,8 +285,3 @@ impl Subject {
         theta
     }
 }
-
-#[doc(hidden)]
-pub fn debug_anatomy(family: Family, beta: &[f64]) -> Anatomy {
-    family.anatomy(beta)
-}
