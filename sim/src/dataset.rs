@@ -269,15 +269,15 @@ pub fn write_dataset(
                 let mesh = place(&posed, yaw, Vector3::zeros());
                 let file = format!("meshes/{subject_name}-{pose_index:03}.ply");
                 let path = out.join(&file);
-                let mut writer = BufWriter::new(File::create(&path).map_err(io_error(&path))?);
+                let mut encoded = Vec::new();
                 write_ply(
                     &mesh,
                     &format!("gdvae-sim {subject_name} pose {pose_index}"),
-                    &mut writer,
+                    &mut encoded,
                 )
-                .and_then(|_| writer.flush())
                 .map_err(io_error(&path))?;
-                let bytes = fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
+                fs::write(&path, &encoded).map_err(io_error(&path))?;
+                let bytes = encoded.len() as u64;
                 records.push((
                     GroundTruth {
                         file,
