@@ -3,8 +3,11 @@
 //!
 //! Layout: `family` (beta -> skeleton + implicit body), `meshing` (implicit -> closed mesh),
 //! `skinning` (rest mesh -> posed mesh), `mesh` (validity and distortion checks), `ply` (output),
-//! `dataset` (folders of meshes + ground truth + splits), `distortion` (isometry measurements).
+//! `dataset` (folders of meshes + ground truth + splits), `distortion` (isometry measurements),
+//! `motion` (30 Hz sequences with identity switches), `camera` (an OAK-D-like stereo depth camera),
+//! `scenario` (motion seen by the camera), `ros2` (CDR messages), `recording` (MCAP files).
 
+pub mod camera;
 pub mod dataset;
 pub mod decimate;
 pub mod distortion;
@@ -12,7 +15,11 @@ pub mod family;
 pub mod implicit;
 pub mod mesh;
 pub mod meshing;
+pub mod motion;
 pub mod ply;
+pub mod recording;
+pub mod ros2;
+pub mod scenario;
 pub mod seeds;
 pub mod skeleton;
 pub mod skinning;

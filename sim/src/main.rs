@@ -11,7 +11,10 @@ use clap::{Parser, Subcommand, ValueEnum};
 use gdvae_sim::dataset::{write_dataset, DatasetSpec};
 use gdvae_sim::distortion::measure_distortion;
 use gdvae_sim::family::{Family, PoseMode, Subject, DEFAULT_VERTEX_COUNT};
+use gdvae_sim::motion::{MotionKind, MotionSpec};
 use gdvae_sim::ply::write_ply;
+use gdvae_sim::recording::{write_recording, RecordingOptions};
+use gdvae_sim::scenario::{Scenario, ViewSpec};
 use gdvae_sim::seeds;
 
 #[derive(Parser)]
@@ -54,6 +57,84 @@ impl From<PoseArg> for PoseMode {
             PoseArg::Gaussian => PoseMode::Gaussian,
             PoseArg::Bent => PoseMode::Bent,
         }
+    }
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum MotionArg {
+    Walk,
+    Idle,
+}
+
+impl From<MotionArg> for MotionKind {
+    fn from(arg: MotionArg) -> Self {
+        match arg {
+            MotionArg::Walk => MotionKind::Walk,
+            MotionArg::Idle => MotionKind::Idle,
+        }
+    }
+}
+
+/// A subject moving in front of the simulated depth camera (shared by `record` and `feed`).
+#[derive(clap::Args)]
+struct ScenarioArgs {
+    /// Family of each successive subject, cycled at every identity switch.
+    #[arg(long, value_delimiter = ',', default_value = "quadruped")]
+    families: Vec<FamilyArg>,
+    #[arg(long, value_enum, default_value = "walk")]
+    motion: MotionArg,
+    /// Frames per second.
+    #[arg(long, default_value_t = 30.0)]
+    fps: f64,
+    /// Length of the sequence in seconds.
+    #[arg(long, default_value_t = 4.0)]
+    duration: f64,
+    /// Times (s) at which another subject replaces the current one, e.g. `--switch-at 2,4`.
+    #[arg(long, value_delimiter = ',')]
+    switch_at: Vec<f64>,
+    /// Horizontal distance from the camera to the stage centre (m).
+    #[arg(long, default_value_t = 3.2)]
+    camera_distance: f64,
+    /// Camera height above the ground (m).
+    #[arg(long, default_value_t = 1.3)]
+    camera_height: f64,
+    /// Height of the point above the stage centre that the camera looks at (m).
+    #[arg(long, default_value_t = 0.8)]
+    target_height: f64,
+    /// Half side of the square ground patch centred on the stage (m); 0 leaves the ground out.
+    #[arg(long, default_value_t = 4.0)]
+    ground_extent: f64,
+    /// Boxes of clutter on the ground around the stage.
+    #[arg(long, default_value_t = 0)]
+    clutter: usize,
+    /// Point-cloud decimation: keep every n-th depth pixel in each direction (1 keeps all).
+    #[arg(long, default_value_t = 1)]
+    decimation: usize,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+impl ScenarioArgs {
+    fn build(&self) -> Result<Scenario> {
+        let motion = MotionSpec {
+            families: self.families.iter().copied().map(Family::from).collect(),
+            kind: self.motion.into(),
+            fps: self.fps,
+            duration: self.duration,
+            switch_times: self.switch_at.clone(),
+            area: [0.4, 0.7],
+            seed: self.seed,
+        };
+        let view = ViewSpec {
+            camera_distance: self.camera_distance,
+            camera_height: self.camera_height,
+            target_height: self.target_height,
+            ground_half_extent: self.ground_extent,
+            clutter: self.clutter,
+            decimation: self.decimation,
+            ..ViewSpec::default()
+        };
+        Ok(Scenario::new(motion, view)?)
     }
 }
 
@@ -105,6 +186,19 @@ enum Command {
         /// Print one JSON object per family instead of a table.
         #[arg(long)]
         json: bool,
+    },
+    /// Record a subject moving in front of the simulated depth camera to an MCAP file (ROS 2 CDR).
+    Record {
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        scenario: ScenarioArgs,
+        /// Also record the 16UC1 depth images and their CameraInfo.
+        #[arg(long)]
+        depth_images: bool,
+        /// Write uncompressed chunks (default: zstd).
+        #[arg(long)]
+        no_compression: bool,
     },
     /// Write one posed subject as a binary PLY.
     Mesh {
@@ -243,6 +337,39 @@ fn run(command: Command) -> Result<()> {
                     );
                 }
             }
+            Ok(())
+        }
+        Command::Record {
+            out,
+            scenario,
+            depth_images,
+            no_compression,
+        } => {
+            let scenario = scenario.build()?;
+            let total = scenario.frame_count();
+            eprintln!("sim: recording {total} frames to {}", out.display());
+            let options = RecordingOptions {
+                depth_images,
+                compression: !no_compression,
+            };
+            let last_report = Mutex::new(Instant::now());
+            let summary = write_recording(&scenario, &out, options, |done, total| {
+                let mut last = last_report.lock().unwrap_or_else(|e| e.into_inner());
+                if last.elapsed().as_secs_f64() >= 2.0 || done == total {
+                    *last = Instant::now();
+                    eprintln!("sim: {done}/{total} frames");
+                }
+            })
+            .with_context(|| format!("writing recording {}", out.display()))?;
+            println!(
+                "wrote {} frames in {:.1} s ({:.1} frames/s), {:.0} points per frame (min {}), {:.2} MB",
+                summary.frames,
+                summary.seconds,
+                summary.frames as f64 / summary.seconds.max(1e-9),
+                summary.points_per_frame_mean,
+                summary.points_per_frame_min,
+                summary.bytes as f64 / 1e6
+            );
             Ok(())
         }
         Command::Mesh {

@@ -19,6 +19,10 @@ fn bad_arguments_fail_with_a_message_naming_them() {
         (vec!["dataset", "--out", out, "--bent-fraction", "2"], "bent-fraction"),
         (vec!["dataset", "--out", out, "--families", "fish"], "fish"),
         (vec!["distortion", "--poses", "-3"], "-3"),
+        (vec!["record", "--out", out, "--fps", "0"], "fps"),
+        (vec!["record", "--out", out, "--switch-at", "9"], "switch"),
+        (vec!["record", "--out", out, "--decimation", "0"], "decimation"),
+        (vec!["record", "--out", out, "--camera-distance=-1"], "camera_distance"),
     ] {
         let output = sim(&args);
         let stderr = String::from_utf8_lossy(&output.stderr);

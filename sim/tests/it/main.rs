@@ -3,4 +3,5 @@
 mod cli;
 mod dataset;
 mod meshes;
+mod sensor;
 mod util;

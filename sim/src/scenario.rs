@@ -1,0 +1,157 @@
+//! A scenario: a motion script seen by a depth camera. It yields sensor frames (depth image, point
+//! cloud in the camera's optical frame, and the frame's ground truth), shared by MCAP recordings
+//! (`recording`) and the live zenoh feed (`sim feed`).
+
+use nalgebra::{Point3, Vector3};
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::camera::{ground_box, CameraError, DepthCamera, DepthImage, Intrinsics, Scene, StereoModel};
+use crate::mesh::Mesh;
+use crate::motion::{FrameTruth, Motion, MotionBuildError, MotionSpec};
+use crate::seeds;
+
+/// Where the camera stands and what else is in view.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ViewSpec {
+    /// Horizontal distance from the camera to the centre of the stage (m).
+    pub camera_distance: f64,
+    pub camera_height: f64,
+    /// Height of the point the camera looks at, above the stage centre (m).
+    pub target_height: f64,
+    /// Azimuth of the camera around the stage, from +x (rad).
+    pub camera_azimuth: f64,
+    /// Half side of the ground patch (m); 0 leaves the ground out.
+    pub ground_half_extent: f64,
+    /// Boxes placed on the ground around the stage.
+    pub clutter: usize,
+    /// Point-cloud decimation: keep every n-th pixel in each direction.
+    pub decimation: usize,
+}
+
+impl Default for ViewSpec {
+    fn default() -> Self {
+        Self {
+            camera_distance: 3.2,
+            camera_height: 1.3,
+            target_height: 0.8,
+            camera_azimuth: 0.0,
+            ground_half_extent: 4.0,
+            clutter: 0,
+            decimation: 1,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ScenarioError {
+    #[error(transparent)]
+    Motion(#[from] MotionBuildError),
+    #[error(transparent)]
+    Camera(#[from] CameraError),
+    #[error("view parameter '{0}' must be positive and finite, got {1}")]
+    NotPositive(&'static str, f64),
+    #[error("posing frame {0}: {1}")]
+    Pose(usize, crate::family::SubjectError),
+}
+
+/// One simulated sensor frame.
+pub struct SensorFrame {
+    pub truth: FrameTruth,
+    pub depth: DepthImage,
+    /// Valid, decimated depth pixels unprojected to the optical frame (m).
+    pub points: Vec<[f32; 3]>,
+    /// Nanoseconds since the start of the sequence.
+    pub offset_nanos: u64,
+}
+
+pub struct Scenario {
+    pub motion: Motion,
+    pub view: ViewSpec,
+    pub camera: DepthCamera,
+    clutter: Vec<Mesh>,
+}
+
+impl Scenario {
+    pub fn new(motion: MotionSpec, view: ViewSpec) -> Result<Self, ScenarioError> {
+        for (name, value) in [
+            ("camera_distance", view.camera_distance),
+            ("camera_height", view.camera_height),
+            ("decimation", view.decimation as f64),
+        ] {
+            if !(value > 0.0 && value.is_finite()) {
+                return Err(ScenarioError::NotPositive(name, value));
+            }
+        }
+        if !(view.ground_half_extent >= 0.0 && view.target_height.is_finite() && view.camera_azimuth.is_finite()) {
+            return Err(ScenarioError::NotPositive("ground_half_extent", view.ground_half_extent));
+        }
+        let direction = Vector3::new(view.camera_azimuth.cos(), view.camera_azimuth.sin(), 0.0);
+        let position = Point3::from(direction * view.camera_distance + Vector3::z() * view.camera_height);
+        let camera = DepthCamera::looking_at(
+            Intrinsics::oak_d_400p(),
+            StereoModel::oak_d(),
+            position,
+            Point3::new(0.0, 0.0, view.target_height),
+        )?;
+        let clutter = place_clutter(&motion, &view);
+        let motion = Motion::new(motion)?;
+        Ok(Self {
+            motion,
+            view,
+            camera,
+            clutter,
+        })
+    }
+
+    pub fn frame_count(&self) -> usize {
+        self.motion.frame_count()
+    }
+
+    /// Frame `index`: deterministic given the specs (its noise has its own seed).
+    pub fn frame(&self, index: usize) -> Result<SensorFrame, ScenarioError> {
+        let (truth, mesh) = self.motion.frame(index).map_err(|e| ScenarioError::Pose(index, e))?;
+        let mut meshes = vec![mesh];
+        meshes.extend(self.clutter.iter().cloned());
+        let scene = Scene {
+            meshes,
+            ground_half_extent: (self.view.ground_half_extent > 0.0).then_some(self.view.ground_half_extent),
+        };
+        let mut rng = seeds::rng(seeds::derive(self.motion.spec.seed, &[4, index as u64]));
+        let depth = self.camera.capture(&scene, &mut rng);
+        let points = depth.unproject(&self.camera.intrinsics, self.view.decimation);
+        let offset_nanos = (truth.time * 1e9).round() as u64;
+        Ok(SensorFrame {
+            truth,
+            depth,
+            points,
+            offset_nanos,
+        })
+    }
+}
+
+/// Boxes of 0.2-0.6 m outside the subject's wander area, not between it and the camera.
+fn place_clutter(motion: &MotionSpec, view: &ViewSpec) -> Vec<Mesh> {
+    let mut rng = seeds::rng(seeds::derive(motion.seed, &[5]));
+    let clear = motion.area[0].hypot(motion.area[1]) + 0.6;
+    let mut boxes = Vec::with_capacity(view.clutter);
+    let mut attempts = 0;
+    while boxes.len() < view.clutter && attempts < 1000 {
+        attempts += 1;
+        let radius = rng.random_range(clear..clear + 1.5);
+        let angle: f64 = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+        // Keep the camera's line of sight to the stage free.
+        let from_camera = (angle - view.camera_azimuth).rem_euclid(std::f64::consts::TAU);
+        if !(0.8..=std::f64::consts::TAU - 0.8).contains(&from_camera) {
+            continue;
+        }
+        let size = Vector3::new(
+            rng.random_range(0.2..0.6),
+            rng.random_range(0.2..0.6),
+            rng.random_range(0.2..0.6),
+        );
+        let yaw = rng.random_range(0.0..std::f64::consts::PI);
+        boxes.push(ground_box(radius * angle.cos(), radius * angle.sin(), size, yaw));
+    }
+    boxes
+}
