@@ -130,7 +130,10 @@ impl DepthCamera {
     ) -> Result<Self, CameraError> {
         let degenerate = || CameraError::DegenerateLookAt(position.coords.into(), target.coords.into());
         let forward = (target - position).try_normalize(1e-9).ok_or_else(degenerate)?;
-        let right = forward.cross(&Vector3::z()).try_normalize(1e-6).ok_or_else(degenerate)?;
+        let right = forward
+            .cross(&Vector3::z())
+            .try_normalize(1e-6)
+            .ok_or_else(degenerate)?;
         let down = forward.cross(&right);
         let rotation = Rotation3::from_basis_unchecked(&[right, down, forward]);
         let camera = Self {

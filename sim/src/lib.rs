@@ -5,13 +5,15 @@
 //! `skinning` (rest mesh -> posed mesh), `mesh` (validity and distortion checks), `ply` (output),
 //! `dataset` (folders of meshes + ground truth + splits), `distortion` (isometry measurements),
 //! `motion` (30 Hz sequences with identity switches), `camera` (an OAK-D-like stereo depth camera),
-//! `scenario` (motion seen by the camera), `ros2` (CDR messages), `recording` (MCAP files).
+//! `scenario` (motion seen by the camera), `ros2` (CDR messages), `recording` (MCAP files),
+//! `feed` (the live zenoh feed).
 
 pub mod camera;
 pub mod dataset;
 pub mod decimate;
 pub mod distortion;
 pub mod family;
+pub mod feed;
 pub mod implicit;
 pub mod mesh;
 pub mod meshing;

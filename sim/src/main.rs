@@ -3,19 +3,22 @@
 
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::sync::Mutex;
-use std::time::Instant;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use gdvae_sim::dataset::{write_dataset, DatasetSpec};
 use gdvae_sim::distortion::measure_distortion;
 use gdvae_sim::family::{Family, PoseMode, Subject, DEFAULT_VERTEX_COUNT};
+use gdvae_sim::feed::{run_feed, zenoh_config, FeedOptions, DEFAULT_PREFIX};
 use gdvae_sim::motion::{MotionKind, MotionSpec};
 use gdvae_sim::ply::write_ply;
 use gdvae_sim::recording::{write_recording, RecordingOptions};
 use gdvae_sim::scenario::{Scenario, ViewSpec};
 use gdvae_sim::seeds;
+use zenoh::Wait;
 
 #[derive(Parser)]
 #[command(
@@ -200,6 +203,32 @@ enum Command {
         #[arg(long)]
         no_compression: bool,
     },
+    /// Publish a subject moving in front of the simulated depth camera over zenoh, in real time.
+    Feed {
+        #[command(flatten)]
+        scenario: ScenarioArgs,
+        /// Key expression prefix: clouds on <prefix>/points, ground truth on <prefix>/ground_truth.
+        #[arg(long, default_value = DEFAULT_PREFIX)]
+        key_prefix: String,
+        /// Zenoh endpoints to listen on (e.g. tcp/127.0.0.1:7447); default: zenoh's own.
+        #[arg(long, value_delimiter = ',')]
+        listen: Vec<String>,
+        /// Zenoh endpoints (routers or peers) to connect to.
+        #[arg(long, value_delimiter = ',')]
+        connect: Vec<String>,
+        /// Do not discover peers by UDP multicast (use explicit endpoints only).
+        #[arg(long)]
+        no_multicast: bool,
+        /// Also publish 16UC1 depth images on <prefix>/depth and calibration on <prefix>/camera_info.
+        #[arg(long)]
+        depth_images: bool,
+        /// Publish as fast as frames are made instead of at --fps.
+        #[arg(long)]
+        unpaced: bool,
+        /// Wait up to this many seconds for a subscriber to <prefix>/points (or /depth) before the first frame.
+        #[arg(long)]
+        wait_for_subscriber: Option<f64>,
+    },
     /// Write one posed subject as a binary PLY.
     Mesh {
         #[arg(long, value_enum)]
@@ -369,6 +398,67 @@ fn run(command: Command) -> Result<()> {
                 summary.points_per_frame_mean,
                 summary.points_per_frame_min,
                 summary.bytes as f64 / 1e6
+            );
+            Ok(())
+        }
+        Command::Feed {
+            scenario,
+            key_prefix,
+            listen,
+            connect,
+            no_multicast,
+            depth_images,
+            unpaced,
+            wait_for_subscriber,
+        } => {
+            let wait_for_subscriber = match wait_for_subscriber {
+                Some(seconds) if !(seconds >= 0.0 && seconds.is_finite()) => {
+                    bail!("--wait-for-subscriber must be a non-negative number of seconds, got {seconds}")
+                }
+                Some(seconds) => Some(Duration::from_secs_f64(seconds)),
+                None => None,
+            };
+            if key_prefix.trim_matches('/').is_empty() {
+                bail!("--key-prefix must not be empty");
+            }
+            let scenario = scenario.build()?;
+            let config = zenoh_config(&listen, &connect, !no_multicast)?;
+            let session = zenoh::open(config)
+                .wait()
+                .map_err(|e| anyhow::anyhow!("opening a zenoh session: {e}"))?;
+            let stop = Arc::new(AtomicBool::new(false));
+            let handler_stop = stop.clone();
+            ctrlc::set_handler(move || handler_stop.store(true, Ordering::Relaxed))
+                .context("installing the Ctrl-C handler")?;
+            let options = FeedOptions {
+                key_prefix: key_prefix.clone(),
+                depth_images,
+                unpaced,
+                wait_for_subscriber,
+            };
+            eprintln!(
+                "sim: publishing {} frames at {} Hz on {}/points (zenoh id {})",
+                scenario.frame_count(),
+                scenario.motion.spec.fps,
+                key_prefix.trim_end_matches('/'),
+                session.zid()
+            );
+            let last_report = Mutex::new(Instant::now());
+            let summary = run_feed(&scenario, &session, &options, &stop, |done, total| {
+                let mut last = last_report.lock().unwrap_or_else(|e| e.into_inner());
+                if last.elapsed().as_secs_f64() >= 2.0 || done == total {
+                    *last = Instant::now();
+                    eprintln!("sim: {done}/{total} frames published");
+                }
+            });
+            session
+                .close()
+                .wait()
+                .map_err(|e| anyhow::anyhow!("closing the zenoh session: {e}"))?;
+            let summary = summary?;
+            println!(
+                "published {} frames in {:.1} s, {} late (max {:.1} ms late)",
+                summary.published, summary.seconds, summary.late, summary.max_lateness_ms
             );
             Ok(())
         }

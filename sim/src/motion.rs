@@ -379,7 +379,11 @@ pub fn gait_theta(skeleton: &Skeleton, family: Family, phase: f64) -> Vec<f64> {
                 } else if name.ends_with("shoulder") {
                     (0.25 * angle.sin(), 0.0, limb_axis(skeleton, joint))
                 } else if name.ends_with("elbow") {
-                    (0.0, -0.15 - 0.15 * (0.5 - 0.5 * angle.cos()), limb_axis(skeleton, joint))
+                    (
+                        0.0,
+                        -0.15 - 0.15 * (0.5 - 0.5 * angle.cos()),
+                        limb_axis(skeleton, joint),
+                    )
                 } else if name == "head" {
                     (0.04 * (2.0 * TAU * phase).sin(), 0.0, Vector3::y())
                 } else {
@@ -396,8 +400,5 @@ pub fn gait_theta(skeleton: &Skeleton, family: Family, phase: f64) -> Vec<f64> {
 /// The horizontal axis across a limb bone: rotating about it moves the limb forwards and back.
 fn limb_axis(skeleton: &Skeleton, joint: usize) -> Vector3<f64> {
     let bone = skeleton.bone_direction(joint, -Vector3::z());
-    Vector3::x()
-        .cross(&bone)
-        .try_normalize(1e-9)
-        .unwrap_or_else(Vector3::y)
+    Vector3::x().cross(&bone).try_normalize(1e-9).unwrap_or_else(Vector3::y)
 }

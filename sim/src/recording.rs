@@ -21,9 +21,8 @@ use mcap::{Compression, WriteOptions};
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::motion::FrameTruth;
 use crate::ros2::{self, Stamp};
-use crate::scenario::{Scenario, ScenarioError};
+use crate::scenario::{GroundTruthMessage, Scenario, ScenarioError};
 
 pub const POINTS_TOPIC: &str = "/camera/depth/points";
 pub const DEPTH_TOPIC: &str = "/camera/depth/image_raw";
@@ -36,25 +35,6 @@ pub const START_NANOS: u64 = 1_700_000_000_000_000_000;
 
 /// Frames generated in parallel before being written in order.
 const BATCH: usize = 16;
-
-/// The camera's pose in the world, as a ROS transform (translation m, rotation quaternion x y z w).
-#[derive(Debug, Clone, Copy, Serialize)]
-pub struct WorldFromCamera {
-    pub translation: [f64; 3],
-    pub rotation_xyzw: [f64; 4],
-}
-
-/// The ground-truth channel's payload.
-#[derive(Debug, Clone, Serialize)]
-pub struct GroundTruthMessage<'a> {
-    /// Sensor stamp of the frame's point cloud and image (ns since the Unix epoch).
-    pub stamp_nanos: u64,
-    #[serde(flatten)]
-    pub truth: &'a FrameTruth,
-    pub world_from_camera: WorldFromCamera,
-    /// Points in this frame's cloud.
-    pub points: usize,
-}
 
 #[derive(Debug, Clone, Copy)]
 pub struct RecordingOptions {
@@ -81,15 +61,6 @@ pub enum RecordingError {
     Io(#[from] std::io::Error),
     #[error(transparent)]
     Json(#[from] serde_json::Error),
-}
-
-pub fn world_from_camera(scenario: &Scenario) -> WorldFromCamera {
-    let pose = scenario.camera.world_from_camera;
-    let q = pose.rotation;
-    WorldFromCamera {
-        translation: pose.translation.vector.into(),
-        rotation_xyzw: [q.i, q.j, q.k, q.w],
-    }
 }
 
 /// Writes every frame of `scenario` to an MCAP file at `path`; `progress(done, total)` after each batch.
@@ -134,7 +105,7 @@ pub fn write_recording(
     )?;
     let truth_channel = writer.add_channel(truth_schema, GROUND_TRUTH_TOPIC, "json", &no_metadata)?;
 
-    let camera_pose = world_from_camera(scenario);
+    let camera_pose = scenario.world_from_camera();
     writer.write_metadata(&Metadata {
         name: "gdvae_sim".into(),
         metadata: BTreeMap::from([

@@ -194,10 +194,7 @@ pub fn image_schema() -> String {
     with_dependencies(
         "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\n\
          uint32 step\nuint8[] data\n",
-        &[
-            ("std_msgs/Header", HEADER_MSG),
-            ("builtin_interfaces/Time", TIME_MSG),
-        ],
+        &[("std_msgs/Header", HEADER_MSG), ("builtin_interfaces/Time", TIME_MSG)],
     )
 }
 

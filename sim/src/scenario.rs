@@ -55,6 +55,25 @@ pub enum ScenarioError {
     Pose(usize, crate::family::SubjectError),
 }
 
+/// The camera's pose in the world, as a ROS transform (translation m, rotation quaternion x y z w).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct WorldFromCamera {
+    pub translation: [f64; 3],
+    pub rotation_xyzw: [f64; 4],
+}
+
+/// Ground truth of one sensor frame as recordings and feeds publish it (JSON).
+#[derive(Debug, Clone, Serialize)]
+pub struct GroundTruthMessage<'a> {
+    /// Sensor stamp of the frame's point cloud and image (ns since the Unix epoch).
+    pub stamp_nanos: u64,
+    #[serde(flatten)]
+    pub truth: &'a FrameTruth,
+    pub world_from_camera: WorldFromCamera,
+    /// Points in this frame's cloud.
+    pub points: usize,
+}
+
 /// One simulated sensor frame.
 pub struct SensorFrame {
     pub truth: FrameTruth,
@@ -84,7 +103,10 @@ impl Scenario {
             }
         }
         if !(view.ground_half_extent >= 0.0 && view.target_height.is_finite() && view.camera_azimuth.is_finite()) {
-            return Err(ScenarioError::NotPositive("ground_half_extent", view.ground_half_extent));
+            return Err(ScenarioError::NotPositive(
+                "ground_half_extent",
+                view.ground_half_extent,
+            ));
         }
         let direction = Vector3::new(view.camera_azimuth.cos(), view.camera_azimuth.sin(), 0.0);
         let position = Point3::from(direction * view.camera_distance + Vector3::z() * view.camera_height);
@@ -106,6 +128,16 @@ impl Scenario {
 
     pub fn frame_count(&self) -> usize {
         self.motion.frame_count()
+    }
+
+    /// The camera's pose in the world (what a node needs as its sensor-to-gravity transform).
+    pub fn world_from_camera(&self) -> WorldFromCamera {
+        let pose = self.camera.world_from_camera;
+        let q = pose.rotation;
+        WorldFromCamera {
+            translation: pose.translation.vector.into(),
+            rotation_xyzw: [q.i, q.j, q.k, q.w],
+        }
     }
 
     /// Frame `index`: deterministic given the specs (its noise has its own seed).

@@ -33,7 +33,11 @@ fn wall(distance: f64) -> Mesh {
 }
 
 fn depth_statistics(millimetres: &[u16]) -> (f64, f64, usize) {
-    let valid: Vec<f64> = millimetres.iter().filter(|&&d| d > 0).map(|&d| d as f64 / 1000.0).collect();
+    let valid: Vec<f64> = millimetres
+        .iter()
+        .filter(|&&d| d > 0)
+        .map(|&d| d as f64 / 1000.0)
+        .collect();
     let mean = valid.iter().sum::<f64>() / valid.len().max(1) as f64;
     let variance = valid.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / valid.len().max(1) as f64;
     (mean, variance.sqrt(), valid.len())
@@ -53,7 +57,10 @@ fn depth_of_a_wall_is_unbiased_and_its_noise_grows_with_depth_squared() {
         // Only the left border strip, outside the right camera's view (one disparity wide, 22 px at
         // 1.5 m), has no stereo match.
         assert!(valid > 240_000, "{valid} valid pixels at {distance} m");
-        assert!((mean - distance).abs() < 0.002 * distance, "mean {mean} at {distance} m");
+        assert!(
+            (mean - distance).abs() < 0.002 * distance,
+            "mean {mean} at {distance} m"
+        );
         let predicted = camera.stereo.depth_sigma(camera.intrinsics.fx, distance);
         assert!(
             (sigma / predicted - 1.0).abs() < 0.25,
@@ -62,7 +69,10 @@ fn depth_of_a_wall_is_unbiased_and_its_noise_grows_with_depth_squared() {
         sigmas.push(sigma);
     }
     let ratio = sigmas[1] / sigmas[0];
-    assert!((3.0..5.0).contains(&ratio), "doubling depth scaled noise by {ratio}, expected ~4");
+    assert!(
+        (3.0..5.0).contains(&ratio),
+        "doubling depth scaled noise by {ratio}, expected ~4"
+    );
 }
 
 #[test]
@@ -97,8 +107,14 @@ fn out_of_range_depth_edges_and_stereo_shadows_are_invalid() {
     assert_eq!(line[right + 1], 0, "silhouette pixel right of the box is invalid");
     // Shadow width at the wall: fx * b * (1/z_near - 1/z_far) = 441.25 * 0.075 * (1/1.85 - 1/4) ~ 9 px.
     let shadow = (0..left).rev().take_while(|&u| line[u] == 0).count();
-    assert!((6..=14).contains(&shadow), "stereo shadow of {shadow} px left of the box");
-    assert!(line[10] > 3900 && line[width - 10] > 3900, "the wall away from the box is valid");
+    assert!(
+        (6..=14).contains(&shadow),
+        "stereo shadow of {shadow} px left of the box"
+    );
+    assert!(
+        line[10] > 3900 && line[width - 10] > 3900,
+        "the wall away from the box is valid"
+    );
 }
 
 #[test]
@@ -111,7 +127,10 @@ fn unprojected_points_lie_on_the_rendered_surface() {
     let image = camera.capture(&scene, &mut seeds::rng(3));
     let points = image.unproject(&camera.intrinsics, 4);
     let expected = image.valid_pixels() as f64 / 16.0;
-    assert!((points.len() as f64 / expected - 1.0).abs() < 0.05, "decimation keeps 1 in 16 pixels");
+    assert!(
+        (points.len() as f64 / expected - 1.0).abs() < 0.05,
+        "decimation keeps 1 in 16 pixels"
+    );
     for point in &points {
         // Optical frame: z is the depth; back in the world every point is on the wall x = 2.
         let world = camera.world_from_camera * Point3::new(point[0] as f64, point[1] as f64, point[2] as f64);
@@ -140,11 +159,21 @@ fn motion_is_smooth_and_identity_changes_only_at_switches() {
         let (a, b) = (&pair[0], &pair[1]);
         let moved = Vector3::from(b.translation) - Vector3::from(a.translation);
         assert!(moved.norm() < 0.05, "frame {}: jumped {} m", b.frame, moved.norm());
-        assert!((b.yaw - a.yaw).abs() < 0.15, "frame {}: turned {} rad", b.frame, b.yaw - a.yaw);
+        assert!(
+            (b.yaw - a.yaw).abs() < 0.15,
+            "frame {}: turned {} rad",
+            b.frame,
+            b.yaw - a.yaw
+        );
         assert!(b.gait_phase > a.gait_phase, "gait advances while walking");
         if a.subject == b.subject {
             assert_eq!(a.beta, b.beta, "beta is constant for one subject");
-            let step = a.theta.iter().zip(&b.theta).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+            let step = a
+                .theta
+                .iter()
+                .zip(&b.theta)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0, f64::max);
             assert!(step < 0.1, "frame {}: a joint moved {step} rad in one frame", b.frame);
         } else {
             assert_eq!(b.frame, 30, "the switch happens at the scripted time, 1.0 s");
