@@ -3,7 +3,7 @@
 
 VENV := .venv
 PYTHON := $(VENV)/bin/python
-REQUIREMENTS := sim/requirements.txt
+REQUIREMENTS := sim/requirements.txt models/pyproject.toml
 
 # Build everything and run every test: Rust, then the Python checks against the built binaries.
 test: test-rust test-python
@@ -13,6 +13,7 @@ test-rust:
 
 test-python: venv sim
 	$(PYTHON) -m pytest -q sim/tests/python
+	cd models && ../$(PYTHON) -m pytest -q tests
 
 # Build the simulator CLI (target/release/sim).
 sim:
@@ -23,7 +24,8 @@ venv: $(VENV)/.installed
 $(VENV)/.installed: $(REQUIREMENTS)
 	python3 -m venv $(VENV)
 	$(PYTHON) -m pip install --quiet --upgrade pip
-	$(PYTHON) -m pip install --quiet $(foreach r,$(REQUIREMENTS),-r $(r))
+	$(PYTHON) -m pip install --quiet -r sim/requirements.txt
+	$(PYTHON) -m pip install --quiet -e 'models[test]'
 	touch $@
 
 # The committed samples (sim/samples/): regenerate them with exactly these commands.

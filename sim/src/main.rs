@@ -163,7 +163,7 @@ enum Command {
         #[arg(long, default_value_t = 0.15)]
         bent_fraction: f64,
         /// Train, validation and test fractions of the subjects (splits never share a subject).
-        #[arg(long, value_delimiter = ',', num_args = 3, default_value = "0.8,0.1,0.1")]
+        #[arg(long, value_delimiter = ',', default_value = "0.8,0.1,0.1")]
         split: Vec<f64>,
         /// Rotate each mesh by a random yaw about the up axis (recorded in the ground truth).
         #[arg(long)]

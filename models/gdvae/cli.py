@@ -1,0 +1,173 @@
+"""The kit's commands. Each one is a thin wrapper over a module; errors are reported once, here."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger("gdvae")
+
+
+def spectra_command(args) -> int:
+    from .data import load_dataset
+    from .spectral_report import dataset_spectra, spectral_report
+    from .spectrum import SpectrumCache
+
+    dataset = load_dataset(args.dataset, limit=args.limit)
+    log.info("%s: %d meshes, scale %.4f model units per input unit", args.dataset, len(dataset.meshes), dataset.scale)
+    cache = SpectrumCache(args.cache or Path(args.dataset) / ".spectra")
+    spectra = dataset_spectra(dataset, args.count, cache)
+    report = spectral_report(dataset, spectra)
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(f"d_lambda (first {args.count} eigenvalues) within vs between subjects")
+        print(f"{'family':<10} {'meshes':>7} {'subjects':>8} {'within':>9} {'between':>9} {'ratio':>7} {'1-NN same':>9}")
+        for family, row in report.items():
+            print(f"{family:<10} {row['meshes']:>7} {row['subjects']:>8} {row['within_subject_mean']:>9.4f} "
+                  f"{row['between_subject_mean']:>9.4f} {row['ratio_between_to_within']:>7.2f} "
+                  f"{row['nearest_spectrum_same_subject']:>9.3f}")
+    return 0
+
+
+def train_command(args) -> int:
+    from .data import load_dataset
+    from .spectral_report import dataset_spectra
+    from .spectrum import SpectrumCache
+    from .train import recipe, train
+
+    chosen = recipe(args.recipe, regime=args.regime, kind=args.ae)
+    if args.ae_iterations is not None:
+        chosen.ae_iterations = args.ae_iterations
+    if args.vae_iterations is not None:
+        chosen.vae_iterations = args.vae_iterations
+    chosen.ae.supervised = not args.unsupervised
+    chosen.ae.full_rotations = args.full_rotations
+    dataset = load_dataset(args.dataset, limit=args.limit)
+    log.info("%s: %d meshes (%d train), scale %.4f model units per input unit", args.dataset, len(dataset.meshes),
+             len(dataset.indices("train")), dataset.scale)
+    spectra = dataset_spectra(dataset, chosen.spectrum_count, SpectrumCache(Path(args.dataset) / ".spectra"))
+    train(dataset, spectra, args.out, chosen, stop_after=args.stop_after, init_from=args.init_from)
+    log.info("training finished: %s", args.out)
+    return 0
+
+
+def finite_or_null(value):
+    """NaN and infinities become null: strict JSON (the node's parser) has no NaN. A NaN score
+    means the quantity is undefined, e.g. S when x_c retrieves no better than chance."""
+    import math
+
+    if isinstance(value, dict):
+        return {k: finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [finite_or_null(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def evaluate_command(args) -> int:
+    from .data import load_dataset
+    from .evaluate import evaluate
+    from .spectral_report import dataset_spectra
+    from .spectrum import SpectrumCache
+    from .train import load_run
+
+    chosen, ae, vae, state = load_run(args.run)
+    if vae is None:
+        raise ValueError(f"{args.run}: the VAE stage has not finished (stage {state['stage']!r})")
+    dataset = load_dataset(args.dataset, limit=args.limit)
+    spectra = dataset_spectra(dataset, vae.config.spectrum, SpectrumCache(Path(args.dataset) / ".spectra"))
+    metrics = evaluate(ae, vae, dataset, spectra, split=args.split, full_rotations=chosen.ae.full_rotations)
+    metrics = finite_or_null(metrics)
+    metrics["run"] = str(args.run)
+    metrics["dataset"] = str(args.dataset)
+    metrics["command"] = "python -m gdvae " + " ".join(args.argv)
+    text = json.dumps(metrics, indent=2, allow_nan=False)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+        log.info("metrics written to %s", args.out)
+    print(text)
+    return 0
+
+
+def export_command(args) -> int:
+    from .export import write_bundle
+    from .train import dataset_summary, load_run
+
+    chosen, ae, vae, state = load_run(args.run)
+    if vae is None:
+        raise ValueError(f"{args.run}: the VAE stage has not finished (stage {state['stage']!r})")
+    summary_file = Path(args.run) / "dataset.json"
+    if summary_file.exists():
+        summary = json.loads(summary_file.read_text())
+    elif args.dataset:
+        from .data import load_dataset
+
+        summary = dataset_summary(load_dataset(args.dataset))
+    else:
+        raise ValueError(f"{args.run} has no dataset.json: pass --dataset (the training dataset) for its scale")
+    metrics = json.loads(Path(args.metrics).read_text()) if args.metrics else None
+    training = {**summary, "ae_iterations": chosen.ae_iterations, "vae_iterations": chosen.vae_iterations,
+                "ae_batch": chosen.ae_batch, "vae_batch": chosen.vae_batch}
+    write_bundle(ae, vae, args.out, scale=summary["scale"], recipe_name=chosen.name, training=training,
+                 metrics=metrics)
+    print(f"bundle written to {args.out}")
+    return 0
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m gdvae", description="GDVAE++ training kit")
+    parser.add_argument("-v", "--verbose", action="store_true")
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    spectra = commands.add_parser("spectra", help="spectral learning-signal report: d_lambda within vs between subjects")
+    spectra.add_argument("dataset", help="dataset folder (e.g. written by `sim dataset`)")
+    spectra.add_argument("--count", type=int, default=24, help="eigenvalues N_lambda (default 24)")
+    spectra.add_argument("--limit", type=int, help="use only the first N meshes")
+    spectra.add_argument("--cache", help="spectrum cache folder (default DATASET/.spectra)")
+    spectra.add_argument("--json", action="store_true")
+    spectra.set_defaults(handler=spectra_command)
+
+    training = commands.add_parser("train", help="train (or resume) the AE and the VAE on a mesh dataset")
+    training.add_argument("dataset", help="dataset folder (meshes, optional ground_truth.jsonl and splits.json)")
+    training.add_argument("--out", required=True, help="run folder (checkpoint, logs); rerun to resume")
+    training.add_argument("--recipe", default="cpu", choices=["cpu", "paper", "smoke"])
+    training.add_argument("--regime", default="gdvae++", choices=["gdvae++", "fo"])
+    training.add_argument("--ae", default="ftl", choices=["ftl", "std"], help="autoencoder architecture")
+    training.add_argument("--unsupervised", action="store_true", help="no rotation supervision (unaligned data)")
+    training.add_argument("--full-rotations", action="store_true", help="rotations over SO(3), not about the up axis")
+    training.add_argument("--ae-iterations", type=int, help="override the recipe's AE iterations")
+    training.add_argument("--vae-iterations", type=int, help="override the recipe's VAE iterations")
+    training.add_argument("--stop-after", choices=["ae"], help="stop after this stage")
+    training.add_argument("--init-from", help="reuse another run's trained AE and code bank (compare VAE regimes)")
+    training.add_argument("--limit", type=int, help="use only the first N meshes")
+    training.set_defaults(handler=train_command)
+
+    evaluation = commands.add_parser("evaluate", help="the paper's metrics of a trained run on held-out shapes")
+    evaluation.add_argument("run", help="run folder written by `train`")
+    evaluation.add_argument("dataset", help="dataset folder (the held-out split is used)")
+    evaluation.add_argument("--split", default="test")
+    evaluation.add_argument("--out", help="write the metrics JSON here")
+    evaluation.add_argument("--limit", type=int)
+    evaluation.set_defaults(handler=evaluate_command)
+
+    export = commands.add_parser("export", help="write a run as an ONNX bundle (the node's model format)")
+    export.add_argument("run", help="run folder written by `train`")
+    export.add_argument("--out", required=True, help="bundle folder")
+    export.add_argument("--metrics", help="metrics JSON from `evaluate`, recorded in the manifest")
+    export.add_argument("--dataset", help="training dataset, if the run has no dataset.json")
+    export.set_defaults(handler=export_command)
+
+    args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S", stream=sys.stderr)
+    try:
+        return args.handler(args)
+    except (ValueError, FileNotFoundError) as error:
+        print(f"gdvae: error: {error}", file=sys.stderr)
+        return 2

@@ -1,0 +1,223 @@
+"""Bundles: the contract between the kit and the node (documented in models/README.md).
+
+A bundle is one folder:
+- `encoder.onnx`: points [B, N, 3] (model units, centred) -> q [B, 4], x_c [B, n], and the posterior
+  mean and log-variance of z_R, z_E, z_I; dynamic batch and point count.
+- `decoder.onnx`: z_E [B, n_E], z_I [B, n_I], z_R [B, n_R] -> canonical points [B, N_p, 3],
+  rotated points [B, N_p, 3] (canonical rotated by R(D_q(z_R))), and that quaternion q [B, 4].
+- `flow.onnx`: spectrum lambda [B, N_lambda] -> z~_I = f_lambda(lambda) [B, n_I] and log P_lambda [B].
+- `manifest.json`: schema version, sizes, units, conventions, training settings, file hashes,
+  measured metrics. `MODEL_CARD.md`: the same for people.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from .geometry import quaternion_to_matrix, rotate
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+OPSET = 17
+
+
+class EncoderGraph(nn.Module):
+    def __init__(self, ae, vae):
+        super().__init__()
+        self.ae, self.vae = ae, vae
+
+    def forward(self, points):
+        q = self.ae.encode_rotation(points)
+        x_c, _ = self.ae.encode_shape(points, quaternion_to_matrix(q))
+        (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = self.vae.encode(q, x_c)
+        return q, x_c, mu_r, lv_r, mu_e, lv_e, mu_i, lv_i
+
+
+class DecoderGraph(nn.Module):
+    def __init__(self, ae, vae):
+        super().__init__()
+        self.ae, self.vae = ae, vae
+
+    def forward(self, z_e, z_i, z_r):
+        q, x_c = self.vae.decode(z_r, z_e, z_i)
+        canonical = self.ae.decode(x_c)
+        return canonical, rotate(canonical, quaternion_to_matrix(q)), q
+
+
+class FlowGraph(nn.Module):
+    def __init__(self, vae):
+        super().__init__()
+        self.vae = vae
+
+    def forward(self, spectrum):
+        return self.vae.flow(spectrum)[0], self.vae.flow.log_prob(spectrum)
+
+
+ENCODER_OUTPUTS = ["q", "x_c", "z_R_mean", "z_R_logvar", "z_E_mean", "z_E_logvar", "z_I_mean", "z_I_logvar"]
+DECODER_OUTPUTS = ["canonical_points", "rotated_points", "q"]
+FLOW_OUTPUTS = ["z_I", "log_p_lambda"]
+
+
+def example_inputs(ae, vae, batch: int = 2):
+    c = vae.config
+    generator = torch.Generator().manual_seed(0)
+    points = torch.rand(batch, ae.config.points, 3, generator=generator) - 0.5
+    latents = tuple(torch.randn(batch, size, generator=generator) for size in (c.n_extrinsic, c.n_intrinsic, c.n_rotation))
+    spectrum = torch.rand(batch, c.spectrum, generator=generator).cumsum(-1) * 10 + 1
+    return points, latents, spectrum
+
+
+def export_onnx(ae, vae, folder: Path) -> None:
+    ae.eval()
+    vae.eval()
+    points, latents, spectrum = example_inputs(ae, vae)
+    batch = {0: "batch"}
+    # Wrappers are put in eval mode themselves: the exporter restores each module's mode after
+    # tracing, and a wrapper left in training mode would switch the batch norms back to training.
+    torch.onnx.export(EncoderGraph(ae, vae).eval(), (points,), folder / "encoder.onnx", dynamo=False, opset_version=OPSET,
+                      input_names=["points"], output_names=ENCODER_OUTPUTS,
+                      dynamic_axes={"points": {0: "batch", 1: "points"}, **{n: batch for n in ENCODER_OUTPUTS}})
+    torch.onnx.export(DecoderGraph(ae, vae).eval(), latents, folder / "decoder.onnx", dynamo=False, opset_version=OPSET,
+                      input_names=["z_E", "z_I", "z_R"], output_names=DECODER_OUTPUTS,
+                      dynamic_axes={n: batch for n in ["z_E", "z_I", "z_R", *DECODER_OUTPUTS]})
+    torch.onnx.export(FlowGraph(vae).eval(), (spectrum,), folder / "flow.onnx", dynamo=False, opset_version=OPSET,
+                      input_names=["spectrum"], output_names=FLOW_OUTPUTS,
+                      dynamic_axes={n: batch for n in ["spectrum", *FLOW_OUTPUTS]})
+
+
+def sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def parity(ae, vae, folder: Path) -> float:
+    """Largest difference between ONNX Runtime and PyTorch over every output: absolute, or
+    relative where the value's magnitude exceeds 1."""
+    import onnxruntime as ort
+
+    points, latents, spectrum = example_inputs(ae, vae, batch=3)
+    with torch.no_grad():
+        expected = {
+            "encoder.onnx": EncoderGraph(ae, vae).eval()(points),
+            "decoder.onnx": DecoderGraph(ae, vae).eval()(*latents),
+            "flow.onnx": FlowGraph(vae).eval()(spectrum),
+        }
+    feeds = {
+        "encoder.onnx": {"points": points.numpy()},
+        "decoder.onnx": {"z_E": latents[0].numpy(), "z_I": latents[1].numpy(), "z_R": latents[2].numpy()},
+        "flow.onnx": {"spectrum": spectrum.numpy()},
+    }
+    worst = 0.0
+    for name, outputs in expected.items():
+        session = ort.InferenceSession(str(folder / name), providers=["CPUExecutionProvider"])
+        got = session.run(None, feeds[name])
+        for value, reference in zip(got, outputs):
+            # Absolute difference, relative for magnitudes above 1 (log P_lambda is ~ -100).
+            scale = np.maximum(1.0, np.abs(reference.numpy()))
+            worst = max(worst, float((np.abs(value - reference.numpy()) / scale).max()))
+    return worst
+
+
+def write_bundle(ae, vae, folder: str | Path, *, scale: float, recipe_name: str, training: dict,
+                 metrics: dict | None) -> dict:
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    export_onnx(ae, vae, folder)
+    worst = parity(ae, vae, folder)
+    if worst > 1e-4:
+        raise RuntimeError(f"ONNX Runtime differs from PyTorch by {worst:.2e} (> 1e-4): export is broken")
+    c, a = vae.config, ae.config
+    manifest = {
+        "schema_version": SCHEMA_VERSION,
+        "format": "gdvae-bundle",
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "model": {
+            "ae_type": a.kind,
+            "supervision": "supervised" if a.supervised else "unsupervised",
+            "regime": c.regime,
+            "recipe": recipe_name,
+        },
+        "sizes": {"points": a.points, "spectrum": c.spectrum, "x_c": a.latent, "z_R": c.n_rotation,
+                  "z_E": c.n_extrinsic, "z_I": c.n_intrinsic},
+        "units": {
+            "input_unit": "metre",
+            "model_units_per_metre": scale,
+            "centering": "bounding-box centre",
+            "up_axis": "+z",
+            "rotation_mode": "so3" if a.full_rotations else "yaw",
+        },
+        "conventions": {
+            "quaternion": "w, x, y, z; R(q) carries the canonical shape onto the observed one",
+            "points": "rows; observed = canonical @ R(q)^T",
+            "canonical_frame": "the training meshes' frame: x forward, y left, z up",
+        },
+        "files": {name: {"sha256": sha256(folder / name)} for name in ("encoder.onnx", "decoder.onnx", "flow.onnx")},
+        "io": {
+            "encoder.onnx": {"inputs": {"points": ["batch", "points", 3]}, "outputs": ENCODER_OUTPUTS},
+            "decoder.onnx": {"inputs": {"z_E": ["batch", c.n_extrinsic], "z_I": ["batch", c.n_intrinsic],
+                                        "z_R": ["batch", c.n_rotation]}, "outputs": DECODER_OUTPUTS},
+            "flow.onnx": {"inputs": {"spectrum": ["batch", c.spectrum]}, "outputs": FLOW_OUTPUTS},
+        },
+        "onnx_parity_max_diff": worst,
+        "training": training,
+        "metrics": metrics or {},
+    }
+    (folder / "manifest.json").write_text(json.dumps(manifest, indent=2, allow_nan=False) + "\n")
+    (folder / "MODEL_CARD.md").write_text(model_card(manifest))
+    log.info("bundle written to %s (ONNX parity %.2e)", folder, worst)
+    return manifest
+
+
+def model_card(manifest: dict) -> str:
+    m, s, u, t = manifest["model"], manifest["sizes"], manifest["units"], manifest["training"]
+    metrics = manifest["metrics"]
+    lines = [
+        f"# GDVAE++ bundle: {m['regime']}, {m['ae_type'].upper()} autoencoder ({m['supervision']}), recipe `{m['recipe']}`",
+        "",
+        "Encodes a point cloud of one object into a rotation q, a pose code z_E and a shape code z_I",
+        "(paper: \"Disentangling Geometric Deformation Spaces in Generative Latent Shape Models\").",
+        "",
+        "## Inputs",
+        f"- {s['points']} points (any count works; trained with {s['points']}), metres times "
+        f"{u['model_units_per_metre']:.6g}, centred on their bounding box, {u['up_axis']} up.",
+        f"- Rotations seen in training: {'all of SO(3)' if u['rotation_mode'] == 'so3' else 'about the up axis only'}.",
+        "",
+        "## Sizes",
+        f"x_c {s['x_c']}, z_R {s['z_R']}, z_E {s['z_E']}, z_I {s['z_I']}, spectrum {s['spectrum']} eigenvalues.",
+        "",
+        "## Training data",
+        f"{t.get('dataset', '?')}: {t.get('train_meshes', '?')} training meshes of {t.get('train_subjects', '?')} "
+        f"subjects; families {', '.join(t.get('families', [])) or '?'}.",
+        f"AE iterations {t.get('ae_iterations', '?')}, VAE iterations {t.get('vae_iterations', '?')}.",
+        "",
+        "## Measured on held-out subjects",
+    ]
+    if metrics:
+        for key in ("S", "C_X", "d_C", "C_3D", "vae_d_C", "coverage", "fidelity", "log_p_lambda",
+                    "heading_error_median_deg", "shape_from_spectrum_d_C"):
+            if metrics.get(key) is not None:
+                lines.append(f"- {key}: {metrics[key]:.4g}")
+        lines.append(f"- command: `{metrics.get('command', 'python -m gdvae evaluate')}`")
+    else:
+        lines.append("- not evaluated")
+    lines += [
+        "",
+        "## Limits",
+        "- Trained on complete, synthetic surfaces (the sim's quadruped and biped families); single-view",
+        "  depth clouds are partial, so codes from them are noisier than on the test set.",
+        "- Not for safety-critical decisions.",
+        "",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,345 @@
+"""Training: recipes, the point sampler, and the three resumable stages (AE, code bank, VAE).
+
+A run lives in one folder: `checkpoint.pt` (written every `checkpoint_seconds` and at the end of
+each stage; a rerun of the same command resumes from it), `recipe.json`, and `log.jsonl` (one line
+per progress report). Stages:
+  1. ae    - the point-cloud autoencoder (supervised: rotation predictor pretrained first);
+  2. bank  - the frozen AE encodes every training mesh under several random rotations, with its
+             spectrum: the VAE's training set of (q, x_c, lambda);
+  3. vae   - the latent VAE on the bank.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .ae import AEConfig, Autoencoder, ae_loss
+from .data import MeshDataset, normalize, sample_surface
+from .geometry import random_rotation_matrices, rotate
+from .vae import LatentVAE, VAEConfig, vae_loss
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Recipe:
+    name: str
+    ae: AEConfig
+    vae: VAEConfig
+    ae_iterations: int
+    ae_pretrain_iterations: int  # rotation predictor only (supervised AEs)
+    ae_batch: int
+    ae_learning_rate: float = 5e-4
+    ae_min_learning_rate: float = 1e-4
+    bank_copies: int = 8  # random rotations per training mesh in the code bank
+    vae_iterations: int = 40000
+    vae_batch: int = 264
+    vae_learning_rate: float = 1e-4
+    vae_min_learning_rate: float = 1e-5
+    vae_weight_decay: float = 1e-4
+    spectrum_count: int = 22
+    checkpoint_seconds: float = 120.0
+    seed: int = 0
+
+
+def recipe(name: str, regime: str = "gdvae++", kind: str = "ftl") -> Recipe:
+    """Named recipes. `paper`: the paper's sizes (N_p = 1600, its widths and iteration counts; a GPU
+    job). `cpu`: scaled to train AE + VAE in about two hours on 2 cores. `smoke`: seconds, for tests."""
+    vae = VAEConfig() if regime == "gdvae++" else VAEConfig.flow_only()
+    if name == "paper":
+        ae = AEConfig(kind=kind, latent=999 if kind == "ftl" else 600,
+                      decoder_width=1250 if kind == "ftl" else 1200,
+                      gamma_reconstruction=20.0 if kind == "ftl" else 250.0)
+        return Recipe("paper", ae, replace(vae, latent=ae.latent), ae_iterations=150_000,
+                      ae_pretrain_iterations=2000, ae_batch=36 if kind == "ftl" else 40)
+    if name == "cpu":
+        ae = AEConfig(kind=kind, points=256, latent=192 if kind == "ftl" else 150,
+                      rotation_hidden=(32, 64, 128), shape_hidden=(64, 128, 256), decoder_width=256,
+                      gamma_reconstruction=20.0 if kind == "ftl" else 250.0)
+        return Recipe("cpu", ae, replace(vae, latent=ae.latent, width_scale=0.25, flow_hidden=400),
+                      ae_iterations=12000, ae_pretrain_iterations=300, ae_batch=24, ae_learning_rate=1e-3,
+                      vae_iterations=8000, vae_batch=256)
+    if name == "smoke":
+        ae = AEConfig(kind=kind, points=128, latent=48, rotation_hidden=(16, 32), shape_hidden=(16, 32),
+                      decoder_width=32, copies=2)
+        return Recipe("smoke", ae, replace(vae, latent=ae.latent, width_scale=0.02, flow_layers=3, n_extrinsic=4),
+                      ae_iterations=4, ae_pretrain_iterations=2, ae_batch=4, bank_copies=2,
+                      vae_iterations=4, vae_batch=16, checkpoint_seconds=0.0)
+    raise ValueError(f"unknown recipe {name!r} (known: paper, cpu, smoke)")
+
+
+def load_run(run_dir: str | Path) -> tuple[Recipe, Autoencoder, LatentVAE | None, dict]:
+    """A run folder's recipe, trained AE, trained VAE (None before the VAE stage finished) and
+    checkpoint state."""
+    run_dir = Path(run_dir)
+    checkpoint_path = run_dir / "checkpoint.pt"
+    if not checkpoint_path.exists():
+        raise FileNotFoundError(f"{run_dir}: no checkpoint.pt (not a training run folder)")
+    raw = json.loads((run_dir / "recipe.json").read_text())
+    ae_config = AEConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in raw.pop("ae").items()})
+    vae_config = VAEConfig(**raw.pop("vae"))
+    chosen = Recipe(ae=ae_config, vae=vae_config, **raw)
+    state = torch.load(checkpoint_path, weights_only=False)
+    ae = Autoencoder(ae_config)
+    ae.load_state_dict(state["ae"])
+    ae.eval()
+    vae = None
+    if "vae" in state:
+        spectrum = state["bank"]["spectrum"].shape[1]
+        vae = LatentVAE(replace(vae_config, latent=ae_config.latent, spectrum=spectrum))
+        vae.load_state_dict(state["vae"])
+        vae.eval()
+    return chosen, ae, vae, state
+
+
+def dataset_summary(dataset: MeshDataset) -> dict:
+    """What a bundle records about its training data."""
+    train = dataset.indices("train")
+    families = sorted({(item.truth or {}).get("family", "?") for item in dataset.items})
+    return {
+        "dataset": str(dataset.root),
+        "scale": dataset.scale,
+        "meshes": len(dataset.items),
+        "train_meshes": len(train),
+        "train_subjects": len({dataset.items[i].subject for i in train}),
+        "families": families,
+        "has_ground_truth": dataset.has_ground_truth,
+        "rejected": dict(dataset.rejected),
+    }
+
+
+class PointSampler:
+    """Area-weighted surface samples of dataset meshes in model units (dataset scale, centred)."""
+
+    def __init__(self, dataset: MeshDataset, indices: list[int], points: int, seed: int):
+        self.meshes = [normalize(dataset.meshes[i], dataset.scale) for i in indices]
+        self.points = points
+        self.rng = np.random.default_rng(seed)
+
+    def batch(self, size: int) -> tuple[np.ndarray, torch.Tensor]:
+        chosen = self.rng.integers(0, len(self.meshes), size=size)
+        clouds = np.stack([sample_surface(self.meshes[i], self.points, self.rng) for i in chosen])
+        return chosen, torch.from_numpy(clouds)
+
+    def clouds(self, index: int, count: int) -> torch.Tensor:
+        return torch.from_numpy(np.stack([sample_surface(self.meshes[index], self.points, self.rng) for _ in range(count)]))
+
+
+@dataclass
+class Progress:
+    """Logs a line (and a JSON record) at most every `seconds`, with rate and ETA."""
+
+    stage: str
+    total: int
+    log_file: Path
+    seconds: float = 30.0
+    started: float = field(default_factory=time.monotonic)
+    first_iteration: int = 0
+    last: float = 0.0
+
+    def update(self, iteration: int, parts: dict[str, float], force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self.last < self.seconds:
+            return
+        self.last = now
+        done = iteration - self.first_iteration
+        rate = done / max(now - self.started, 1e-9)
+        eta = (self.total - iteration) / rate if rate > 0 else float("inf")
+        shown = " ".join(f"{k}={v:.4g}" for k, v in parts.items())
+        log.info("%s %d/%d (%.2f it/s, ETA %s) %s", self.stage, iteration, self.total, rate, _duration(eta), shown)
+        with open(self.log_file, "a") as f:
+            f.write(json.dumps({"stage": self.stage, "iteration": iteration, "rate": rate, "eta_s": eta, **parts}) + "\n")
+
+
+def _duration(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "?"
+    return f"{int(seconds // 3600)}h{int(seconds % 3600 // 60):02d}m{int(seconds % 60):02d}s"
+
+
+class Plateau:
+    """The paper's schedule: multiply the learning rate by 0.95 when the windowed mean loss stops
+    improving, down to a floor."""
+
+    def __init__(self, optimizer, minimum: float, window: int = 100, patience: int = 3):
+        self.optimizer, self.minimum, self.window, self.patience = optimizer, minimum, window, patience
+        self.values: list[float] = []
+        self.best, self.bad = float("inf"), 0
+
+    def step(self, loss: float) -> None:
+        self.values.append(loss)
+        if len(self.values) < self.window:
+            return
+        mean = float(np.mean(self.values))
+        self.values.clear()
+        if mean < self.best * 0.999:
+            self.best, self.bad = mean, 0
+            return
+        self.bad += 1
+        if self.bad >= self.patience:
+            self.bad = 0
+            for group in self.optimizer.param_groups:
+                group["lr"] = max(self.minimum, group["lr"] * 0.95)
+
+    def state_dict(self):
+        return {"best": self.best, "bad": self.bad, "values": list(self.values)}
+
+    def load_state_dict(self, state):
+        self.best, self.bad, self.values = state["best"], state["bad"], list(state["values"])
+
+
+def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen: Recipe,
+          stop_after: str | None = None, init_from: str | Path | None = None) -> dict:
+    """Runs (or resumes) the three stages. Returns the trained modules.
+
+    `init_from`: another run whose AE and code bank this run reuses (it starts at the VAE stage),
+    so that two VAE regimes can be compared on exactly the same autoencoder.
+    """
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if init_from is not None:  # record the AE budget actually spent, for the bundle's manifest
+        chosen.ae_iterations = json.loads((Path(init_from) / "recipe.json").read_text())["ae_iterations"]
+    (run_dir / "recipe.json").write_text(json.dumps(asdict(chosen), indent=2, default=str))
+    (run_dir / "dataset.json").write_text(json.dumps(dataset_summary(dataset), indent=2))
+    torch.manual_seed(chosen.seed)
+    checkpoint_path = run_dir / "checkpoint.pt"
+    if checkpoint_path.exists():
+        state = torch.load(checkpoint_path, weights_only=False)
+        log.info("resuming from %s: stage %s, iteration %d", checkpoint_path, state["stage"], state["iteration"])
+    elif init_from is not None:
+        source = torch.load(Path(init_from) / "checkpoint.pt", weights_only=False)
+        if "bank" not in source:
+            raise ValueError(f"{init_from}: its AE stage has not finished; nothing to start from")
+        source_recipe = json.loads((Path(init_from) / "recipe.json").read_text())
+        if source_recipe["ae"] != json.loads(json.dumps(asdict(chosen.ae))):
+            raise ValueError(f"{init_from} was trained with another AE configuration than this recipe's")
+        state = {"stage": "vae", "iteration": 0, "ae": source["ae"], "bank": source["bank"]}
+        log.info("starting from the AE and code bank of %s", init_from)
+    else:
+        state = {"stage": "ae", "iteration": 0}
+    train_indices = dataset.indices("train")
+    if not train_indices:
+        raise ValueError(f"{dataset.root}: no training meshes (check splits.json)")
+
+    ae = Autoencoder(chosen.ae)
+    if "ae" in state:
+        ae.load_state_dict(state["ae"])
+    sampler = PointSampler(dataset, train_indices, chosen.ae.points, chosen.seed + state["iteration"])
+
+    def save(extra: dict) -> None:
+        temporary = checkpoint_path.with_suffix(".tmp")
+        torch.save({**extra, "ae": ae.state_dict()}, temporary)
+        temporary.replace(checkpoint_path)
+
+    if state["stage"] == "ae":
+        train_ae(ae, sampler, chosen, state, save, run_dir)
+        state = {"stage": "bank", "iteration": 0}
+        save(state)
+    if stop_after == "ae":
+        return {"ae": ae}
+
+    if state["stage"] == "bank":
+        bank = encode_bank(ae, sampler, spectra[train_indices], chosen)
+        state = {"stage": "vae", "iteration": 0, "bank": bank}
+        save(state)
+    bank = state["bank"]
+
+    vae = LatentVAE(replace(chosen.vae, latent=chosen.ae.latent, spectrum=spectra.shape[1]))
+    if "vae" in state:
+        vae.load_state_dict(state["vae"])
+    else:
+        vae.flow.input.fit(bank["spectrum"])
+        vae.code_norm.fill_(float(bank["x_c"].pow(2).sum(-1).mean()))
+    if state["stage"] == "vae":
+        train_vae(vae, bank, chosen, state, lambda extra: save({**extra, "bank": bank}), run_dir, len(train_indices))
+        save({"stage": "done", "iteration": 0, "bank": bank, "vae": vae.state_dict()})
+    return {"ae": ae.eval(), "vae": vae.eval()}
+
+
+def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir) -> None:
+    optimizer = torch.optim.Adam(ae.parameters(), lr=chosen.ae_learning_rate)
+    schedule = Plateau(optimizer, chosen.ae_min_learning_rate)
+    if "optimizer" in state:
+        optimizer.load_state_dict(state["optimizer"])
+        schedule.load_state_dict(state["schedule"])
+    pretrain = chosen.ae_pretrain_iterations if chosen.ae.supervised else 0
+    total = pretrain + chosen.ae_iterations
+    start = state["iteration"]
+    progress = Progress("ae", total, run_dir / "log.jsonl", first_iteration=start)
+    last_save = time.monotonic()
+    ae.train()
+    for iteration in range(start, total):
+        _, clouds = sampler.batch(chosen.ae_batch)
+        losses, _ = ae_loss(ae, clouds, rotation_only=iteration < pretrain)
+        optimizer.zero_grad(set_to_none=True)
+        losses.total.backward()
+        optimizer.step()
+        if iteration >= pretrain:
+            schedule.step(losses.parts["total"])
+        progress.update(iteration + 1, {**losses.parts, "lr": optimizer.param_groups[0]["lr"]}, force=iteration + 1 == total)
+        if time.monotonic() - last_save > chosen.checkpoint_seconds and iteration + 1 < total:
+            save({"stage": "ae", "iteration": iteration + 1, "optimizer": optimizer.state_dict(),
+                  "schedule": schedule.state_dict()})
+            last_save = time.monotonic()
+    ae.eval()
+
+
+@torch.no_grad()
+def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe) -> dict:
+    """(q, x_c, lambda) for every training mesh under `bank_copies` random rotations."""
+    ae.eval()
+    qs, codes, spectrum = [], [], []
+    for index in range(len(sampler.meshes)):
+        clouds = sampler.clouds(index, chosen.bank_copies)
+        rotations = random_rotation_matrices(len(clouds), full=chosen.ae.full_rotations)
+        inputs = rotate(clouds, rotations)
+        q = ae.encode_rotation(inputs)
+        x_c, _ = ae.encode_shape(inputs, _rotation_of(q))
+        qs.append(q)
+        codes.append(x_c)
+        spectrum.append(torch.from_numpy(np.repeat(spectra[index][None], len(clouds), 0)).float())
+    log.info("bank: %d training meshes x %d rotations encoded", len(sampler.meshes), chosen.bank_copies)
+    return {"q": torch.cat(qs), "x_c": torch.cat(codes), "spectrum": torch.cat(spectrum)}
+
+
+def _rotation_of(q):
+    from .geometry import quaternion_to_matrix
+
+    return quaternion_to_matrix(q)
+
+
+def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int) -> None:
+    optimizer = torch.optim.Adam(vae.parameters(), lr=chosen.vae_learning_rate, weight_decay=chosen.vae_weight_decay)
+    schedule = Plateau(optimizer, chosen.vae_min_learning_rate)
+    if "optimizer" in state:
+        optimizer.load_state_dict(state["optimizer"])
+        schedule.load_state_dict(state["schedule"])
+    generator = torch.Generator().manual_seed(chosen.seed + 1 + state["iteration"])
+    total = chosen.vae_iterations
+    start = state["iteration"]
+    progress = Progress("vae", total, run_dir / "log.jsonl", first_iteration=start)
+    last_save = time.monotonic()
+    size = len(bank["q"])
+    vae.train()
+    for iteration in range(start, total):
+        batch = torch.randint(0, size, (min(chosen.vae_batch, size),), generator=generator)
+        losses = vae_loss(vae, bank["q"][batch], bank["x_c"][batch], bank["spectrum"][batch], dataset_size=size)
+        optimizer.zero_grad(set_to_none=True)
+        losses.total.backward()
+        torch.nn.utils.clip_grad_norm_(vae.parameters(), 100.0)
+        optimizer.step()
+        schedule.step(losses.parts["total"])
+        progress.update(iteration + 1, {**losses.parts, "lr": optimizer.param_groups[0]["lr"]}, force=iteration + 1 == total)
+        if time.monotonic() - last_save > chosen.checkpoint_seconds and iteration + 1 < total:
+            save({"stage": "vae", "iteration": iteration + 1, "vae": vae.state_dict(),
+                  "optimizer": optimizer.state_dict(), "schedule": schedule.state_dict()})
+            last_save = time.monotonic()
+    vae.eval()

@@ -1,0 +1,220 @@
+"""The latent VAE on the autoencoder's codes (paper section 4, appendix "VAE Details").
+
+Inputs are an AE encoding (q, x_c) and the shape's spectrum lambda. Encoders give diagonal
+Gaussians over z_R (from q), z_E and z_I (from x_c); deterministic decoders give q^ = D_q(z_R) and
+x_c^ = D_x(z_E, z_I); the spectral flow maps lambda to mu~_I = f_lambda(lambda), with a posterior
+variance Sigma~_I(lambda) for training.
+
+Two training regimes share architecture and inference, and differ only in the training pass:
+- GDVAE++: reconstruct x_c from (z_E, z~_I), z~_I ~ N(f_lambda(lambda), Sigma~_I(lambda)); the
+  disentanglement losses use mu~_I; mu_I(x_c) is pulled towards mu~_I with the gradient cut
+  through mu~_I (so extrinsic information in mu_I cannot leak into the flow).
+- GDVAE-FO ("flow only"): reconstruct from (z_E, z_I) with z_I from x_c; the spectrum enters only
+  through the consistency losses and the flow likelihood.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from .flow import SpectralFlow
+from .geometry import normalize_quaternion, quaternion_distance
+from .hfvae import hfvae_terms
+from .nets import mlp
+from .spectrum import spectral_distance_torch
+
+
+@dataclass
+class VAEConfig:
+    """Defaults: the paper's values for its mixed human-animal (HA) dataset, the closest to the
+    sim's two families trained together (appendix Table "VAE hyper-parameters")."""
+
+    regime: str = "gdvae++"  # or "fo"
+    latent: int = 999  # n = dim(x_c), from the AE
+    spectrum: int = 22  # N_lambda (= n_I)
+    n_rotation: int = 3
+    n_extrinsic: int = 10
+    width_scale: float = 1.0  # multiplies every hidden width (CPU recipes shrink the networks)
+    flow_layers: int = 9
+    flow_hidden: int = 400
+    beta_intra_tc: float = 1.0  # beta_1
+    beta_dimension_kl: float = 20.0  # beta_2
+    beta_mutual_information: float = 1.0  # beta_3
+    beta_inter_tc: float = 80.0  # beta_4
+    omega_reconstruction: float = 360.0  # omega_R
+    omega_quaternion: float = 10.0  # omega_q
+    omega_flow: float = 1.0  # omega_p
+    omega_intrinsic: float = 450.0  # omega_I (FO: 0 for HA)
+    omega_spectrum: float = 100.0  # omega_lambda (FO: 800)
+    omega_covariance: float = 60.0  # omega_Sigma
+    omega_jacobian: float = 200.0  # omega_J
+    # Not in the paper: trains Sigma_I(x_c) as the Gaussian NLL of mu_I's error (gradients reach
+    # only the variance network). In GDVAE++ nothing else trains it, and the node's shape fusion
+    # weighs frames by it.
+    omega_variance: float = 1.0
+
+    @property
+    def n_intrinsic(self) -> int:
+        return self.spectrum
+
+    def validate(self) -> None:
+        if self.regime not in ("gdvae++", "fo"):
+            raise ValueError(f"regime must be 'gdvae++' or 'fo', got {self.regime!r}")
+        if min(self.latent, self.spectrum, self.n_rotation, self.n_extrinsic) < 1:
+            raise ValueError("latent sizes must be positive")
+
+    @classmethod
+    def flow_only(cls, **overrides) -> "VAEConfig":
+        """GDVAE-FO: the paper's FO weights for HA (omega_lambda = 800, omega_I = 0)."""
+        return cls(**{"regime": "fo", "omega_spectrum": 800.0, "omega_intrinsic": 0.0, **overrides})
+
+
+def _w(size: int, scale: float) -> int:
+    return max(8, int(round(size * scale)))
+
+
+class GaussianEncoder(nn.Module):
+    """mu and log-variance networks, each a fully connected stack."""
+
+    def __init__(self, inputs: int, outputs: int, mean_hidden, variance_hidden):
+        super().__init__()
+        self.mean = mlp(inputs, mean_hidden, outputs)
+        self.log_variance = mlp(inputs, variance_hidden, outputs)
+
+    def forward(self, x):
+        return self.mean(x), self.log_variance(x).clamp(-12.0, 6.0)
+
+
+class RotationEncoder(nn.Module):
+    """mu_R and Sigma_R from q: a shared stack (256, 128) into 64, then one linear layer each."""
+
+    def __init__(self, outputs: int, scale: float):
+        super().__init__()
+        self.shared = nn.Sequential(mlp(4, (_w(256, scale), _w(128, scale)), _w(64, scale)), nn.ReLU())
+        self.mean = nn.Linear(_w(64, scale), outputs)
+        self.log_variance = nn.Linear(_w(64, scale), outputs)
+
+    def forward(self, q):
+        h = self.shared(q)
+        return self.mean(h), self.log_variance(h).clamp(-12.0, 6.0)
+
+
+class LatentVAE(nn.Module):
+    def __init__(self, config: VAEConfig):
+        super().__init__()
+        config.validate()
+        self.config = config
+        s = config.width_scale
+        n, n_e, n_i = config.latent, config.n_extrinsic, config.n_intrinsic
+        self.rotation = RotationEncoder(config.n_rotation, s)
+        self.extrinsic = GaussianEncoder(n, n_e, tuple(_w(h, s) for h in (2000, 1600, 1200, 400)),
+                                         tuple(_w(h, s) for h in (2000, 1200, 400)))
+        self.intrinsic = GaussianEncoder(n, n_i, tuple(_w(h, s) for h in (2000, 1600, 1200, 400)),
+                                         tuple(_w(h, s) for h in (2000, 1200, 400)))
+        # Sigma~_I(lambda): only the GDVAE++ training pass samples z~_I, so only it has one.
+        self.spectral_variance = mlp(config.spectrum, (2 * n_i, 2 * n_i), n_i) if config.regime == "gdvae++" else None
+        self.flow = SpectralFlow(config.spectrum, config.flow_layers, _w(config.flow_hidden, s))
+        self.decode_rotation = mlp(config.n_rotation, tuple(_w(h, s) for h in (64, 128, 256)), 4)
+        self.decode_shape = mlp(n_e + n_i, tuple(_w(h, s) for h in (600, 1200, 1600, 2000)), n)
+        # E[||x_c||^2] over the training codes, for the normalized reconstruction error.
+        self.register_buffer("code_norm", torch.ones(()))
+
+    def encode(self, q, x_c):
+        """Posterior means and log-variances: ((mu_R, lv_R), (mu_E, lv_E), (mu_I, lv_I))."""
+        return self.rotation(q), self.extrinsic(x_c), self.intrinsic(x_c)
+
+    def decode(self, z_r, z_e, z_i):
+        return normalize_quaternion(self.decode_rotation(z_r)), self.decode_shape(torch.cat([z_e, z_i], -1))
+
+
+def sample(mean, log_variance):
+    return mean + torch.exp(0.5 * log_variance) * torch.randn_like(mean)
+
+
+def covariance_penalty(groups: list[torch.Tensor]) -> torch.Tensor:
+    """L_Sigma: sum of |empirical cross-covariance| between the means of different groups."""
+    total = groups[0].new_zeros(())
+    for a in range(len(groups)):
+        for b in range(len(groups)):
+            if a != b:
+                x = groups[a] - groups[a].mean(0)
+                y = groups[b] - groups[b].mean(0)
+                total = total + (x.T @ y / (len(x) - 1)).abs().sum()
+    return total
+
+
+def jacobian_penalty(model: LatentVAE, mu_e: torch.Tensor, mu_i: torch.Tensor) -> torch.Tensor:
+    """L_J: ||d mu^_E / d mu_I||_F^2 + ||d mu^_I / d mu_E||_F^2 through a decode/re-encode cycle,
+    estimated without building Jacobians: E_v ||J v||^2 = ||J||_F^2 for v ~ N(0, I)."""
+
+    def reencode_extrinsic(z_i):
+        return model.extrinsic.mean(model.decode_shape(torch.cat([mu_e, z_i], -1)))
+
+    def reencode_intrinsic(z_e):
+        return model.intrinsic.mean(model.decode_shape(torch.cat([z_e, mu_i], -1)))
+
+    _, e_by_i = torch.func.jvp(reencode_extrinsic, (mu_i,), (torch.randn_like(mu_i),))
+    _, i_by_e = torch.func.jvp(reencode_intrinsic, (mu_e,), (torch.randn_like(mu_e),))
+    return e_by_i.pow(2).sum(-1).mean() + i_by_e.pow(2).sum(-1).mean()
+
+
+@dataclass
+class VAELosses:
+    total: torch.Tensor
+    parts: dict[str, float] = field(default_factory=dict)
+
+
+def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: torch.Tensor,
+             dataset_size: int, with_jacobian: bool = True) -> VAELosses:
+    """The full objective L_HF + L_lambda + L_F + L_D on a batch, in the configured regime."""
+    c = model.config
+    (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = model.encode(q, x_c)
+    flow_mean, log_det = model.flow(spectrum)
+    if c.regime == "gdvae++":
+        mean_i, log_var_i = flow_mean, model.spectral_variance(spectrum).clamp(-12.0, 6.0)
+    else:
+        mean_i, log_var_i = mu_i, lv_i
+    z_r, z_e, z_i = sample(mu_r, lv_r), sample(mu_e, lv_e), sample(mean_i, log_var_i)
+    q_hat, x_hat = model.decode(z_r, z_e, z_i)
+
+    reconstruction = (x_c - x_hat).pow(2).sum(-1).mean() / (c.latent * model.code_norm)
+    rotation = quaternion_distance(q, q_hat).mean()
+    terms = hfvae_terms(
+        torch.cat([z_r, z_e, z_i], -1),
+        torch.cat([mu_r, mu_e, mean_i], -1),
+        torch.cat([lv_r, lv_e, log_var_i], -1),
+        [c.n_rotation, c.n_extrinsic, c.n_intrinsic],
+        dataset_size,
+    )
+    hf = (c.omega_reconstruction * (reconstruction + c.omega_quaternion * rotation)
+          + c.beta_intra_tc * terms["intra_group_tc"] + c.beta_dimension_kl * terms["dimension_kl"]
+          + c.beta_mutual_information * terms["mutual_information"] + c.beta_inter_tc * terms["inter_group_tc"])
+
+    prior = -0.5 * (flow_mean.pow(2).sum(-1) + c.n_intrinsic * torch.log(torch.tensor(2 * torch.pi)))
+    log_likelihood = (prior + log_det).mean()
+    flow = -c.omega_flow * log_likelihood
+
+    target = flow_mean.detach() if c.regime == "gdvae++" else flow_mean
+    intrinsic = (mu_i - target).pow(2).sum(-1).mean()
+    spectrum_error = spectral_distance_torch(spectrum, model.flow.inverse(mu_i)).mean()
+    consistency = c.omega_intrinsic * intrinsic + c.omega_spectrum * spectrum_error
+
+    # Calibrate Sigma_I(x_c) to the error of mu_I against the spectral target (see VAEConfig).
+    error = (mu_i.detach() - flow_mean.detach()).pow(2)
+    variance = 0.5 * (error * torch.exp(-lv_i) + lv_i).sum(-1).mean()
+    consistency = consistency + c.omega_variance * variance
+
+    covariance = covariance_penalty([mu_r, mu_e, mean_i])
+    jacobian = jacobian_penalty(model, mu_e, mean_i) if with_jacobian else mu_e.new_zeros(())
+    disentangle = c.omega_covariance * covariance + c.omega_jacobian * jacobian
+
+    total = hf + flow + consistency + disentangle
+    parts = {
+        "total": total, "reconstruction": reconstruction, "quaternion": rotation,
+        **terms, "log_p_lambda": log_likelihood, "intrinsic_consistency": intrinsic,
+        "spectrum_error": spectrum_error, "variance_nll": variance, "covariance": covariance, "jacobian": jacobian,
+    }
+    return VAELosses(total, {k: float(v.detach()) for k, v in parts.items()})
