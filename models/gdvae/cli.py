@@ -69,6 +69,12 @@ def finite_or_null(value):
     return value
 
 
+def default_sim_binary() -> str | None:
+    """The workspace's release build of the sim, when present."""
+    candidate = Path(__file__).resolve().parents[2] / "target" / "release" / "sim"
+    return str(candidate) if candidate.is_file() else None
+
+
 def evaluate_command(args) -> int:
     from .data import load_dataset
     from .evaluate import evaluate
@@ -81,11 +87,18 @@ def evaluate_command(args) -> int:
         raise ValueError(f"{args.run}: the VAE stage has not finished (stage {state['stage']!r})")
     dataset = load_dataset(args.dataset, limit=args.limit)
     spectra = dataset_spectra(dataset, vae.config.spectrum, SpectrumCache(Path(args.dataset) / ".spectra"))
-    metrics = evaluate(ae, vae, dataset, spectra, split=args.split, full_rotations=chosen.ae.full_rotations)
+    sim = args.sim or default_sim_binary()
+    metrics = evaluate(ae, vae, dataset, spectra, split=args.split, full_rotations=chosen.ae.full_rotations,
+                       sim_binary=sim)
     metrics = finite_or_null(metrics)
     metrics["run"] = str(args.run)
     metrics["dataset"] = str(args.dataset)
     metrics["command"] = "python -m gdvae " + " ".join(args.argv)
+    if args.figures:
+        from .figures import make_figures
+
+        for path in make_figures(ae, vae, dataset, spectra, args.figures, split=args.split):
+            log.info("figure %s", path)
     text = json.dumps(metrics, indent=2, allow_nan=False)
     if args.out:
         Path(args.out).write_text(text + "\n")
@@ -152,6 +165,8 @@ def main(argv=None) -> int:
     evaluation.add_argument("dataset", help="dataset folder (the held-out split is used)")
     evaluation.add_argument("--split", default="test")
     evaluation.add_argument("--out", help="write the metrics JSON here")
+    evaluation.add_argument("--figures", help="also write PNG figures into this folder")
+    evaluation.add_argument("--sim", help="sim binary for pose-transfer ground truth (default: target/release/sim)")
     evaluation.add_argument("--limit", type=int)
     evaluation.set_defaults(handler=evaluate_command)
 

@@ -32,9 +32,74 @@ def encode_all(ae, vae, clouds: torch.Tensor, rotations: torch.Tensor, spectra: 
     return codes
 
 
+def made_by_sim(dataset: MeshDataset) -> bool:
+    """Pose-transfer ground truth comes from the sim, so only its datasets qualify."""
+    import json
+
+    description = dataset.root / "dataset.json"
+    try:
+        return json.loads(description.read_text()).get("format") == "gdvae-sim-dataset"
+    except (OSError, ValueError):
+        return False
+
+
+@torch.no_grad()
+def pose_transfer(ae, vae, dataset: MeshDataset, indices: list[int], codes: dict, sim_binary: str,
+                  rng: np.random.Generator, pairs_per_family: int = 20) -> dict:
+    """Pose transfer against ground truth: decode (z_E of shape A, z_I of shape B) and compare with
+    the sim's mesh of subject B in A's pose (`sim pose`). Baselines: A's and B's own
+    reconstructions against the same target (right pose wrong shape, right shape wrong pose)."""
+    import json
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    from .data import normalize, read_mesh, sample_surface
+
+    rows_by_family: dict[str, list[int]] = {}
+    for row, index in enumerate(indices):
+        truth = dataset.items[index].truth
+        if truth and "beta" in truth and "theta" in truth:
+            rows_by_family.setdefault(truth["family"], []).append(row)
+    pairs, requests = [], []
+    for family, rows in rows_by_family.items():
+        for _ in range(pairs_per_family):
+            a, b = rng.choice(rows, size=2, replace=False)
+            ta, tb = dataset.items[indices[a]].truth, dataset.items[indices[b]].truth
+            if ta["subject"] == tb["subject"]:
+                continue
+            name = f"transfer-{len(pairs):04d}"
+            pairs.append((family, int(a), int(b), name))
+            requests.append({"name": name, "family": family, "beta": tb["beta"], "theta": ta["theta"]})
+    if not pairs:
+        return {}
+    with tempfile.TemporaryDirectory() as folder:
+        request_file = Path(folder) / "requests.jsonl"
+        request_file.write_text("\n".join(json.dumps(r) for r in requests) + "\n")
+        subprocess.run([sim_binary, "pose", "--requests", str(request_file), "--out", folder],
+                       check=True, capture_output=True, timeout=600)
+        targets = torch.from_numpy(np.stack([
+            sample_surface(normalize(read_mesh(Path(folder) / f"{name}.ply"), dataset.scale), ae.config.points, rng)
+            for *_, name in pairs]))
+    a_rows = torch.tensor([a for _, a, _, _ in pairs])
+    b_rows = torch.tensor([b for _, _, b, _ in pairs])
+    rotation = codes["mu_R"][a_rows]
+
+    def decode(e_rows, i_rows):
+        _, x_c = vae.decode(rotation, codes["mu_E"][e_rows], codes["mu_I"][i_rows])
+        return ae.decode(x_c)
+
+    return {
+        "pairs": len(pairs),
+        "transfer_d_C": float(chamfer(decode(a_rows, b_rows), targets).mean()),
+        "baseline_pose_source_d_C": float(chamfer(decode(a_rows, a_rows), targets).mean()),
+        "baseline_shape_source_d_C": float(chamfer(decode(b_rows, b_rows), targets).mean()),
+    }
+
+
 @torch.no_grad()
 def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray, split: str = "test", seed: int = 0,
-             full_rotations: bool = False) -> dict:
+             full_rotations: bool = False, sim_binary: str | None = None) -> dict:
     ae.eval()
     vae.eval()
     torch.manual_seed(seed)
@@ -117,6 +182,12 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray, split: str = "t
         metrics["retrieval"] = retrieval
         if retrieval:
             metrics["S"] = float(np.mean([r["S"] for r in retrieval.values()]))
+        if not sim_binary:
+            log.info("no sim binary: the pose-transfer error is skipped")
+        elif not made_by_sim(dataset):
+            log.info("%s was not written by `sim dataset`: the pose-transfer error is skipped", dataset.root)
+        else:
+            metrics["pose_transfer"] = pose_transfer(ae, vae, dataset, indices, codes, sim_binary, rng)
     else:
         log.info("no ground truth: retrieval and the disentanglement score S are skipped")
     return metrics

@@ -229,6 +229,16 @@ enum Command {
         #[arg(long)]
         wait_for_subscriber: Option<f64>,
     },
+    /// Pose given subjects in given poses: one JSON request per line, {"name", "family", "beta",
+    /// "theta"}, each written as <out>/<name>.ply (the kit's pose-transfer ground truth).
+    Pose {
+        /// JSON-lines file of requests.
+        #[arg(long)]
+        requests: PathBuf,
+        /// Output folder (created if missing).
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Write one posed subject as a binary PLY.
     Mesh {
         #[arg(long, value_enum)]
@@ -245,6 +255,58 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+}
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PoseRequest {
+    name: String,
+    family: Family,
+    beta: Vec<f64>,
+    theta: Vec<f64>,
+}
+
+/// `sim pose`: builds each distinct subject once (in parallel) and writes every requested pose.
+fn pose_requests(requests: &std::path::Path, out: &std::path::Path) -> Result<()> {
+    use rayon::prelude::*;
+
+    let text = std::fs::read_to_string(requests).with_context(|| format!("reading {}", requests.display()))?;
+    let mut parsed = Vec::new();
+    for (number, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+        let request: PoseRequest = serde_json::from_str(line)
+            .with_context(|| format!("{}:{}: not a pose request", requests.display(), number + 1))?;
+        let valid_name = !request.name.is_empty()
+            && request.name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+            && !request.name.starts_with('.');
+        if !valid_name {
+            bail!("{}:{}: name '{}' must be letters, digits, '-', '_' or '.'", requests.display(), number + 1, request.name);
+        }
+        parsed.push(request);
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    // Group by subject: meshing a subject costs far more than posing it.
+    let mut subjects: Vec<(Family, Vec<f64>, Vec<&PoseRequest>)> = Vec::new();
+    for request in &parsed {
+        match subjects.iter_mut().find(|(f, b, _)| *f == request.family && *b == request.beta) {
+            Some((_, _, group)) => group.push(request),
+            None => subjects.push((request.family, request.beta.clone(), vec![request])),
+        }
+    }
+    subjects.par_iter().try_for_each(|(family, beta, group)| -> Result<()> {
+        let subject = Subject::new(*family, beta.clone())?;
+        for request in group {
+            let mesh = subject.pose(&request.theta).with_context(|| format!("request '{}'", request.name))?;
+            let path = out.join(format!("{}.ply", request.name));
+            let mut file = std::io::BufWriter::new(
+                std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?,
+            );
+            write_ply(&mesh, &format!("gdvae-sim {} pose request {}", family.name(), request.name), &mut file)
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
+        Ok(())
+    })?;
+    println!("wrote {} meshes of {} subjects to {}", parsed.len(), subjects.len(), out.display());
+    Ok(())
 }
 
 fn main() -> ExitCode {
@@ -462,6 +524,7 @@ fn run(command: Command) -> Result<()> {
             );
             Ok(())
         }
+        Command::Pose { requests, out } => pose_requests(&requests, &out),
         Command::Mesh {
             family,
             subject_seed,
