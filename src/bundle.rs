@@ -1,0 +1,182 @@
+//! Model bundles: the kit's `manifest.json` and ONNX files, checked before the first frame.
+//!
+//! The node refuses a bundle it cannot honour (unknown schema, missing or altered files, units or
+//! conventions it does not implement) with a message that says which and why. The format is
+//! documented in models/README.md.
+
+use std::collections::BTreeMap;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+use sha2::{Digest, Sha256};
+
+pub const SCHEMA_VERSION: u32 = 1;
+pub const FILES: [&str; 3] = ["encoder.onnx", "decoder.onnx", "flow.onnx"];
+
+#[derive(Debug, Clone, Deserialize)]
+pub struct Manifest {
+    pub schema_version: u32,
+    pub format: String,
+    pub model: ModelInfo,
+    pub sizes: Sizes,
+    pub units: Units,
+    pub files: BTreeMap<String, FileEntry>,
+    #[serde(default)]
+    pub metrics: serde_json::Value,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+pub struct ModelInfo {
+    pub ae_type: String,
+    pub supervision: String,
+    pub regime: String,
+    pub recipe: String,
+}
+
+#[derive(Debug, Clone, Copy, Deserialize)]
+pub struct Sizes {
+    pub points: usize,
+    pub spectrum: usize,
+    pub x_c: usize,
+    #[serde(rename = "z_R")]
+    pub z_r: usize,
+    #[serde(rename = "z_E")]
+    pub z_e: usize,
+    #[serde(rename = "z_I")]
+    pub z_i: usize,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+pub struct Units {
+    pub input_unit: String,
+    pub model_units_per_metre: f64,
+    pub centering: String,
+    pub up_axis: String,
+    pub rotation_mode: String,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+pub struct FileEntry {
+    pub sha256: String,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum BundleError {
+    #[error("bundle {path}: cannot read manifest.json: {source}")]
+    Read { path: PathBuf, source: std::io::Error },
+    #[error("bundle {path}: manifest.json is not a valid manifest: {source}")]
+    Parse { path: PathBuf, source: serde_json::Error },
+    #[error("bundle {path}: {reason}")]
+    Unsupported { path: PathBuf, reason: String },
+}
+
+/// A checked bundle: its folder and manifest.
+#[derive(Debug, Clone)]
+pub struct Bundle {
+    pub folder: PathBuf,
+    pub manifest: Manifest,
+}
+
+impl Bundle {
+    pub fn load(folder: impl AsRef<Path>) -> Result<Self, BundleError> {
+        let folder = folder.as_ref().to_path_buf();
+        let manifest_path = folder.join("manifest.json");
+        let text = std::fs::read_to_string(&manifest_path).map_err(|source| BundleError::Read {
+            path: folder.clone(),
+            source,
+        })?;
+        let manifest: Manifest = serde_json::from_str(&text).map_err(|source| BundleError::Parse {
+            path: folder.clone(),
+            source,
+        })?;
+        let bundle = Self { folder, manifest };
+        bundle.check()?;
+        Ok(bundle)
+    }
+
+    pub fn path(&self, file: &str) -> PathBuf {
+        self.folder.join(file)
+    }
+
+    fn unsupported(&self, reason: String) -> BundleError {
+        BundleError::Unsupported {
+            path: self.folder.clone(),
+            reason,
+        }
+    }
+
+    fn check(&self) -> Result<(), BundleError> {
+        let m = &self.manifest;
+        if m.format != "gdvae-bundle" {
+            return Err(self.unsupported(format!("format is '{}', expected 'gdvae-bundle'", m.format)));
+        }
+        if m.schema_version != SCHEMA_VERSION {
+            return Err(self.unsupported(format!(
+                "schema version {} is not supported (this node reads version {SCHEMA_VERSION})",
+                m.schema_version
+            )));
+        }
+        let s = m.sizes;
+        for (name, value) in [
+            ("points", s.points),
+            ("spectrum", s.spectrum),
+            ("x_c", s.x_c),
+            ("z_R", s.z_r),
+            ("z_E", s.z_e),
+            ("z_I", s.z_i),
+        ] {
+            if value == 0 || value > 1 << 20 {
+                return Err(self.unsupported(format!("size {name} = {value} is out of range")));
+            }
+        }
+        let u = &m.units;
+        if u.input_unit != "metre" {
+            return Err(self.unsupported(format!("input unit '{}' (this node feeds metres)", u.input_unit)));
+        }
+        if !(u.model_units_per_metre.is_finite() && u.model_units_per_metre > 0.0) {
+            return Err(self.unsupported(format!(
+                "model_units_per_metre = {} must be positive",
+                u.model_units_per_metre
+            )));
+        }
+        if u.centering != "bounding-box centre" {
+            return Err(self.unsupported(format!("centering '{}' is not implemented", u.centering)));
+        }
+        if u.up_axis != "+z" {
+            return Err(self.unsupported(format!("up axis '{}' (this node's gravity frame is +z up)", u.up_axis)));
+        }
+        if u.rotation_mode != "yaw" && u.rotation_mode != "so3" {
+            return Err(self.unsupported(format!("rotation mode '{}' is unknown", u.rotation_mode)));
+        }
+        for file in FILES {
+            let entry = m
+                .files
+                .get(file)
+                .ok_or_else(|| self.unsupported(format!("manifest lists no {file}")))?;
+            let actual = sha256_file(&self.path(file))
+                .map_err(|e| self.unsupported(format!("cannot read {file}: {e}")))?;
+            if !actual.eq_ignore_ascii_case(&entry.sha256) {
+                return Err(self.unsupported(format!(
+                    "{file} has sha256 {actual}, but the manifest says {} (altered or mismatched file)",
+                    entry.sha256
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+fn sha256_file(path: &Path) -> std::io::Result<String> {
+    let mut file = std::fs::File::open(path)?;
+    let mut hasher = Sha256::new();
+    let mut buffer = vec![0u8; 1 << 16];
+    loop {
+        let read = file.read(&mut buffer)?;
+        if read == 0 {
+            break;
+        }
+        hasher.update(&buffer[..read]);
+    }
+    Ok(hasher.finalize().iter().map(|b| format!("{b:02x}")).collect())
+}

@@ -1,0 +1,224 @@
+//! ONNX Runtime: finding its library, and running a bundle's encoder.
+//!
+//! `ort` is built with `load-dynamic`: nothing is downloaded at build or run time. The library is
+//! found, in order, at the configured path, at `ORT_DYLIB_PATH`, or inside the `onnxruntime` wheel
+//! of a Python venv (`.venv/lib/python3.*/site-packages/onnxruntime/capi/`) in the working directory
+//! or next to the executable's ancestors. `make venv` installs that wheel.
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use ort::session::Session;
+use ort::value::Tensor;
+
+use crate::bundle::Bundle;
+
+#[derive(Debug, thiserror::Error)]
+pub enum RuntimeError {
+    #[error(
+        "ONNX Runtime library not found (looked at: {looked}). Set ORT_DYLIB_PATH or `onnxruntime_library` in the \
+         config to a libonnxruntime.so, or run `make venv` to install the onnxruntime wheel into .venv"
+    )]
+    LibraryNotFound { looked: String },
+    #[error("loading ONNX Runtime from {path}: {message}")]
+    Load { path: PathBuf, message: String },
+    #[error("{file}: {message}")]
+    Session { file: PathBuf, message: String },
+    #[error("{file}: expected output '{name}' is missing (outputs: {found})")]
+    MissingOutput { file: PathBuf, name: String, found: String },
+    #[error("encoder run failed: {0}")]
+    Run(String),
+}
+
+static ENVIRONMENT: OnceLock<Result<(PathBuf, ort::environment::Environment), String>> = OnceLock::new();
+
+/// Candidate locations of libonnxruntime, most specific first.
+pub fn library_candidates(configured: Option<&Path>) -> Vec<PathBuf> {
+    let mut candidates = Vec::new();
+    if let Some(path) = configured {
+        candidates.push(path.to_path_buf());
+    }
+    if let Some(path) = std::env::var_os("ORT_DYLIB_PATH") {
+        candidates.push(PathBuf::from(path));
+    }
+    let mut roots = vec![std::env::current_dir().unwrap_or_default()];
+    if let Ok(exe) = std::env::current_exe() {
+        roots.extend(exe.ancestors().skip(1).map(Path::to_path_buf));
+    }
+    for root in roots {
+        let lib = root.join(".venv").join("lib");
+        let Ok(pythons) = std::fs::read_dir(&lib) else { continue };
+        for python in pythons.flatten() {
+            let capi = python.path().join("site-packages/onnxruntime/capi");
+            let Ok(files) = std::fs::read_dir(&capi) else { continue };
+            let mut found: Vec<PathBuf> = files
+                .flatten()
+                .map(|f| f.path())
+                .filter(|p| {
+                    p.file_name()
+                        .and_then(|n| n.to_str())
+                        .is_some_and(|n| n.starts_with("libonnxruntime.so"))
+                })
+                .collect();
+            found.sort();
+            candidates.extend(found.into_iter().rev());
+        }
+    }
+    candidates
+}
+
+/// Loads ONNX Runtime once per process (later calls return the first outcome).
+pub fn environment(configured: Option<&Path>) -> Result<&'static ort::environment::Environment, RuntimeError> {
+    let outcome = ENVIRONMENT.get_or_init(|| {
+        let candidates = library_candidates(configured);
+        let Some(path) = candidates.iter().find(|p| p.is_file()).cloned() else {
+            let looked = candidates
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ");
+            return Err(format!("not-found:{looked}"));
+        };
+        let built = ort::init_from(&path)
+            .map_err(|e| e.to_string())
+            .and_then(|builder| builder.build().map_err(|e| e.to_string()));
+        built
+            .map(|environment| (path.clone(), environment))
+            .map_err(|message| format!("{}:{message}", path.display()))
+    });
+    match outcome {
+        Ok((_, environment)) => Ok(environment),
+        Err(message) => match message.strip_prefix("not-found:") {
+            Some(looked) => Err(RuntimeError::LibraryNotFound {
+                looked: if looked.is_empty() { "nothing".into() } else { looked.into() },
+            }),
+            None => {
+                let (path, message) = message.split_once(':').unwrap_or(("?", message));
+                Err(RuntimeError::Load {
+                    path: PathBuf::from(path),
+                    message: message.to_string(),
+                })
+            }
+        },
+    }
+}
+
+/// The library actually loaded, once `environment` succeeded.
+pub fn loaded_library() -> Option<PathBuf> {
+    ENVIRONMENT.get().and_then(|o| o.as_ref().ok()).map(|(p, _)| p.clone())
+}
+
+/// The encoder's outputs for one frame.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Encoding {
+    pub q: [f32; 4],
+    pub x_c: Vec<f32>,
+    pub z_r_mean: Vec<f32>,
+    pub z_r_logvar: Vec<f32>,
+    pub z_e_mean: Vec<f32>,
+    pub z_e_logvar: Vec<f32>,
+    pub z_i_mean: Vec<f32>,
+    pub z_i_logvar: Vec<f32>,
+}
+
+const OUTPUTS: [&str; 8] = [
+    "q",
+    "x_c",
+    "z_R_mean",
+    "z_R_logvar",
+    "z_E_mean",
+    "z_E_logvar",
+    "z_I_mean",
+    "z_I_logvar",
+];
+
+/// One ONNX Runtime session of a bundle's encoder (sessions are not shared between threads).
+pub struct Encoder {
+    session: Session,
+    file: PathBuf,
+}
+
+impl Encoder {
+    pub fn load(bundle: &Bundle, library: Option<&Path>, threads: usize) -> Result<Self, RuntimeError> {
+        let environment = environment(library)?;
+        let file = bundle.path("encoder.onnx");
+        let session_error = |e: ort::Error| RuntimeError::Session {
+            file: file.clone(),
+            message: e.to_string(),
+        };
+        let session = Session::builder(environment)
+            .map_err(session_error)?
+            .with_intra_threads(threads.max(1))
+            .map_err(|e| session_error(e.into()))?
+            .with_inter_threads(1)
+            .map_err(|e| session_error(e.into()))?
+            .commit_from_file(&file)
+            .map_err(session_error)?;
+        let found: Vec<String> = session.outputs().iter().map(|o| o.name().to_string()).collect();
+        for name in OUTPUTS {
+            if !found.iter().any(|f| f == name) {
+                return Err(RuntimeError::MissingOutput {
+                    file: file.clone(),
+                    name: name.into(),
+                    found: found.join(", "),
+                });
+            }
+        }
+        Ok(Self { session, file })
+    }
+
+    pub fn file(&self) -> &Path {
+        &self.file
+    }
+
+    /// Encodes a batch of clouds that all have the same number of points (model units, centred).
+    pub fn encode(&mut self, clouds: &[&[[f32; 3]]]) -> Result<Vec<Encoding>, RuntimeError> {
+        let batch = clouds.len();
+        if batch == 0 {
+            return Ok(Vec::new());
+        }
+        let points = clouds[0].len();
+        if clouds.iter().any(|c| c.len() != points) || points == 0 {
+            return Err(RuntimeError::Run("clouds of a batch must be non-empty and equally long".into()));
+        }
+        let mut data = Vec::with_capacity(batch * points * 3);
+        for cloud in clouds {
+            for point in *cloud {
+                data.extend_from_slice(point);
+            }
+        }
+        let input = Tensor::from_array(([batch, points, 3], data)).map_err(|e| RuntimeError::Run(e.to_string()))?;
+        let outputs = self
+            .session
+            .run(ort::inputs!["points" => input])
+            .map_err(|e| RuntimeError::Run(e.to_string()))?;
+        let mut columns: Vec<Vec<Vec<f32>>> = Vec::with_capacity(OUTPUTS.len());
+        for name in OUTPUTS {
+            let (shape, values) = outputs[name]
+                .try_extract_tensor::<f32>()
+                .map_err(|e| RuntimeError::Run(format!("output {name}: {e}")))?;
+            let width = shape.get(1).copied().unwrap_or(1).max(1) as usize;
+            if values.len() != batch * width {
+                return Err(RuntimeError::Run(format!("output {name} has {} values for a batch of {batch}", values.len())));
+            }
+            columns.push(values.chunks(width).map(<[f32]>::to_vec).collect());
+        }
+        let mut encodings = Vec::with_capacity(batch);
+        for row in 0..batch {
+            #[allow(clippy::needless_range_loop)] // `row` indexes every column, not one slice
+            let take = |column: usize| columns[column][row].clone();
+            let q = take(0);
+            encodings.push(Encoding {
+                q: [q[0], q[1], q[2], q[3]],
+                x_c: take(1),
+                z_r_mean: take(2),
+                z_r_logvar: take(3),
+                z_e_mean: take(4),
+                z_e_logvar: take(5),
+                z_i_mean: take(6),
+                z_i_logvar: take(7),
+            });
+        }
+        Ok(encodings)
+    }
+}

@@ -1,0 +1,5 @@
+//! The node's integration tests: one binary, a module per area.
+
+mod files;
+mod ros2;
+mod sampling;
