@@ -6,9 +6,10 @@ PYTHON := $(VENV)/bin/python
 REQUIREMENTS := sim/requirements.txt models/pyproject.toml
 
 # Build everything and run every test: Rust, then the Python checks against the built binaries.
+# The venv comes first: the node's tests load ONNX Runtime from its onnxruntime wheel.
 test: test-rust test-python
 
-test-rust:
+test-rust: venv
 	cargo test --workspace --release
 
 test-python: venv sim

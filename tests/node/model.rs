@@ -1,0 +1,80 @@
+//! The shipped bundle through the real ONNX Runtime (the onnxruntime wheel in .venv, installed by
+//! `make venv`), and bundle checks that must refuse altered or unsupported bundles.
+
+use std::path::{Path, PathBuf};
+
+use gdvae_node::bundle::Bundle;
+use gdvae_node::prepare::{centre_and_scale, subsample, Sampling};
+use gdvae_node::runtime::Encoder;
+use gdvae_node::sources::files::{read_cloud, FileOptions};
+
+fn shipped() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("models/bundles/cpu-gdvaepp")
+}
+
+fn prepared(bundle: &Bundle, mesh: &str, seed: u64) -> Vec<[f32; 3]> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("sim/samples/meshes").join(mesh);
+    let cloud = read_cloud(&path, &FileOptions::default()).unwrap().cloud;
+    let n = bundle.manifest.sizes.points;
+    let mut points = subsample(&cloud.points, n, n / 4, Sampling::Farthest, 0.01, seed).unwrap();
+    centre_and_scale(&mut points, bundle.manifest.units.model_units_per_metre as f32);
+    points
+}
+
+#[test]
+fn the_shipped_bundle_encodes_in_onnx_runtime() {
+    let bundle = Bundle::load(shipped()).unwrap();
+    let sizes = bundle.manifest.sizes;
+    let mut encoder = Encoder::load(&bundle, None, 1).unwrap();
+    let a = prepared(&bundle, "biped_rest.ply", 0);
+    let b = prepared(&bundle, "quadruped_rest.ply", 0);
+    let batch = encoder.encode(&[&a, &b]).unwrap();
+    assert_eq!(batch.len(), 2);
+    for encoding in &batch {
+        assert_eq!(encoding.x_c.len(), sizes.x_c);
+        assert_eq!(encoding.z_e_mean.len(), sizes.z_e);
+        assert_eq!(encoding.z_i_mean.len(), sizes.z_i);
+        assert_eq!(encoding.z_i_logvar.len(), sizes.z_i);
+        let norm: f32 = encoding.q.iter().map(|v| v * v).sum::<f32>().sqrt();
+        assert!((norm - 1.0).abs() < 1e-4, "q is a unit quaternion: |q| = {norm}");
+        assert!(encoding.z_i_mean.iter().chain(&encoding.x_c).all(|v| v.is_finite()));
+    }
+    // Batching does not change a frame's result, and running twice gives the same numbers.
+    let alone = encoder.encode(&[&a]).unwrap().remove(0);
+    for (x, y) in alone.x_c.iter().zip(&batch[0].x_c) {
+        assert!((x - y).abs() < 1e-4, "batched {y} vs alone {x}");
+    }
+    assert_eq!(alone, encoder.encode(&[&a]).unwrap().remove(0));
+    assert_ne!(batch[0].z_i_mean, batch[1].z_i_mean, "a biped and a quadruped differ in shape");
+}
+
+#[test]
+fn altered_or_unsupported_bundles_are_refused_with_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    for file in ["manifest.json", "encoder.onnx", "decoder.onnx", "flow.onnx"] {
+        std::fs::copy(shipped().join(file), dir.path().join(file)).unwrap();
+    }
+    assert!(Bundle::load(dir.path()).is_ok());
+
+    let mut flow = std::fs::read(dir.path().join("flow.onnx")).unwrap();
+    let last = flow.len() - 1;
+    flow[last] ^= 1;
+    std::fs::write(dir.path().join("flow.onnx"), &flow).unwrap();
+    let error = Bundle::load(dir.path()).unwrap_err().to_string();
+    assert!(error.contains("flow.onnx") && error.contains("sha256"), "{error}");
+    std::fs::copy(shipped().join("flow.onnx"), dir.path().join("flow.onnx")).unwrap();
+
+    let manifest = std::fs::read_to_string(shipped().join("manifest.json")).unwrap();
+    for (from, to, expected) in [
+        ("\"schema_version\": 1", "\"schema_version\": 9", "schema version 9"),
+        ("\"up_axis\": \"+z\"", "\"up_axis\": \"+y\"", "up axis"),
+        ("\"input_unit\": \"metre\"", "\"input_unit\": \"inch\"", "input unit"),
+    ] {
+        assert!(manifest.contains(from), "the shipped manifest has {from}");
+        std::fs::write(dir.path().join("manifest.json"), manifest.replace(from, to)).unwrap();
+        let error = Bundle::load(dir.path()).unwrap_err().to_string();
+        assert!(error.contains(expected), "{error} lacks '{expected}'");
+    }
+    std::fs::write(dir.path().join("manifest.json"), "{ not json").unwrap();
+    assert!(Bundle::load(dir.path()).unwrap_err().to_string().contains("not a valid manifest"));
+}
