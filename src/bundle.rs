@@ -154,8 +154,8 @@ impl Bundle {
                 .files
                 .get(file)
                 .ok_or_else(|| self.unsupported(format!("manifest lists no {file}")))?;
-            let actual = sha256_file(&self.path(file))
-                .map_err(|e| self.unsupported(format!("cannot read {file}: {e}")))?;
+            let actual =
+                sha256_file(&self.path(file)).map_err(|e| self.unsupported(format!("cannot read {file}: {e}")))?;
             if !actual.eq_ignore_ascii_case(&entry.sha256) {
                 return Err(self.unsupported(format!(
                     "{file} has sha256 {actual}, but the manifest says {} (altered or mismatched file)",

@@ -13,7 +13,11 @@ use gdvae_node::runtime::{loaded_library, Encoder};
 use gdvae_node::sources::files::{read_cloud, FileOptions};
 
 #[derive(Parser)]
-#[command(name = "gdvae-node", version, about = "Point-cloud frames -> GDVAE++ rotation, pose and shape codes")]
+#[command(
+    name = "gdvae-node",
+    version,
+    about = "Point-cloud frames -> GDVAE++ rotation, pose and shape codes"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -30,7 +30,14 @@ pub enum RuntimeError {
     Run(String),
 }
 
-static ENVIRONMENT: OnceLock<Result<(PathBuf, ort::environment::Environment), String>> = OnceLock::new();
+/// Why the one attempt to load ONNX Runtime failed (kept, so later calls report it too).
+#[derive(Debug, Clone)]
+enum InitFailure {
+    NotFound { looked: String },
+    Load { path: PathBuf, message: String },
+}
+
+static ENVIRONMENT: OnceLock<Result<(PathBuf, ort::environment::Environment), InitFailure>> = OnceLock::new();
 
 /// Candidate locations of libonnxruntime, most specific first.
 pub fn library_candidates(configured: Option<&Path>) -> Vec<PathBuf> {
@@ -77,29 +84,23 @@ pub fn environment(configured: Option<&Path>) -> Result<&'static ort::environmen
                 .map(|p| p.display().to_string())
                 .collect::<Vec<_>>()
                 .join(", ");
-            return Err(format!("not-found:{looked}"));
+            return Err(InitFailure::NotFound {
+                looked: if looked.is_empty() { "nothing".into() } else { looked },
+            });
         };
-        let built = ort::init_from(&path)
+        ort::init_from(&path)
             .map_err(|e| e.to_string())
-            .and_then(|builder| builder.build().map_err(|e| e.to_string()));
-        built
+            .and_then(|builder| builder.build().map_err(|e| e.to_string()))
             .map(|environment| (path.clone(), environment))
-            .map_err(|message| format!("{}:{message}", path.display()))
+            .map_err(|message| InitFailure::Load { path, message })
     });
     match outcome {
         Ok((_, environment)) => Ok(environment),
-        Err(message) => match message.strip_prefix("not-found:") {
-            Some(looked) => Err(RuntimeError::LibraryNotFound {
-                looked: if looked.is_empty() { "nothing".into() } else { looked.into() },
-            }),
-            None => {
-                let (path, message) = message.split_once(':').unwrap_or(("?", message));
-                Err(RuntimeError::Load {
-                    path: PathBuf::from(path),
-                    message: message.to_string(),
-                })
-            }
-        },
+        Err(InitFailure::NotFound { looked }) => Err(RuntimeError::LibraryNotFound { looked: looked.clone() }),
+        Err(InitFailure::Load { path, message }) => Err(RuntimeError::Load {
+            path: path.clone(),
+            message: message.clone(),
+        }),
     }
 }
 
@@ -179,7 +180,9 @@ impl Encoder {
         }
         let points = clouds[0].len();
         if clouds.iter().any(|c| c.len() != points) || points == 0 {
-            return Err(RuntimeError::Run("clouds of a batch must be non-empty and equally long".into()));
+            return Err(RuntimeError::Run(
+                "clouds of a batch must be non-empty and equally long".into(),
+            ));
         }
         let mut data = Vec::with_capacity(batch * points * 3);
         for cloud in clouds {
@@ -199,26 +202,28 @@ impl Encoder {
                 .map_err(|e| RuntimeError::Run(format!("output {name}: {e}")))?;
             let width = shape.get(1).copied().unwrap_or(1).max(1) as usize;
             if values.len() != batch * width {
-                return Err(RuntimeError::Run(format!("output {name} has {} values for a batch of {batch}", values.len())));
+                return Err(RuntimeError::Run(format!(
+                    "output {name} has {} values for a batch of {batch}",
+                    values.len()
+                )));
             }
             columns.push(values.chunks(width).map(<[f32]>::to_vec).collect());
         }
-        let mut encodings = Vec::with_capacity(batch);
-        for row in 0..batch {
-            #[allow(clippy::needless_range_loop)] // `row` indexes every column, not one slice
-            let take = |column: usize| columns[column][row].clone();
-            let q = take(0);
-            encodings.push(Encoding {
-                q: [q[0], q[1], q[2], q[3]],
-                x_c: take(1),
-                z_r_mean: take(2),
-                z_r_logvar: take(3),
-                z_e_mean: take(4),
-                z_e_logvar: take(5),
-                z_i_mean: take(6),
-                z_i_logvar: take(7),
-            });
-        }
-        Ok(encodings)
+        let take = |column: usize, row: usize| columns[column][row].clone();
+        Ok((0..batch)
+            .map(|row| {
+                let q = take(0, row);
+                Encoding {
+                    q: [q[0], q[1], q[2], q[3]],
+                    x_c: take(1, row),
+                    z_r_mean: take(2, row),
+                    z_r_logvar: take(3, row),
+                    z_e_mean: take(4, row),
+                    z_e_logvar: take(5, row),
+                    z_i_mean: take(6, row),
+                    z_i_logvar: take(7, row),
+                }
+            })
+            .collect())
     }
 }

@@ -21,21 +21,28 @@ from scipy.sparse.linalg import eigsh
 from .data import Mesh
 
 
+def corner_cotangents(mesh: Mesh) -> list[np.ndarray]:
+    """Per triangle, the cotangent of the angle at each corner (index i: corner i)."""
+    corners = [mesh.vertices[mesh.faces[:, i]] for i in range(3)]
+    cotangents = []
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        e1, e2 = corners[j] - corners[i], corners[k] - corners[i]
+        cotangents.append(np.einsum("ij,ij->i", e1, e2) / np.linalg.norm(np.cross(e1, e2), axis=1))
+    return cotangents
+
+
 def cotangent_laplacian(mesh: Mesh) -> tuple[sparse.csr_matrix, sparse.dia_matrix]:
     """(L, M): the positive semi-definite cotangent stiffness matrix and the mixed-Voronoi lumped
     mass matrix, so that L phi = lambda M phi has lambda >= 0."""
-    v, f = mesh.vertices, mesh.faces
-    n = len(v)
-    corners = [v[f[:, i]] for i in range(3)]
+    f = mesh.faces
+    n = len(mesh.vertices)
+    cotangents = corner_cotangents(mesh)
     stiffness_rows, stiffness_cols, stiffness_vals = [], [], []
-    cotangents = []
     for i in range(3):
-        # Angle at corner i, opposite edge (j, k).
+        # The angle at corner i weights the opposite edge (j, k).
         j, k = (i + 1) % 3, (i + 2) % 3
-        e1, e2 = corners[j] - corners[i], corners[k] - corners[i]
-        cot = np.einsum("ij,ij->i", e1, e2) / np.linalg.norm(np.cross(e1, e2), axis=1)
-        cotangents.append(cot)
-        weight = 0.5 * cot
+        weight = 0.5 * cotangents[i]
         stiffness_rows += [f[:, j], f[:, k]]
         stiffness_cols += [f[:, k], f[:, j]]
         stiffness_vals += [-weight, -weight]
@@ -55,11 +62,7 @@ def mixed_voronoi_areas(mesh: Mesh, cotangents: list[np.ndarray] | None = None) 
     corners = [v[f[:, i]] for i in range(3)]
     area = 0.5 * np.linalg.norm(np.cross(corners[1] - corners[0], corners[2] - corners[0]), axis=1)
     if cotangents is None:
-        cotangents = []
-        for i in range(3):
-            j, k = (i + 1) % 3, (i + 2) % 3
-            e1, e2 = corners[j] - corners[i], corners[k] - corners[i]
-            cotangents.append(np.einsum("ij,ij->i", e1, e2) / np.linalg.norm(np.cross(e1, e2), axis=1))
+        cotangents = corner_cotangents(mesh)
     obtuse = np.stack([c < 0 for c in cotangents], axis=1)  # cot < 0 <=> angle > 90 degrees
     any_obtuse = obtuse.any(axis=1)
     per_corner = np.zeros((len(f), 3))

@@ -23,7 +23,7 @@ import torch
 
 from .ae import AEConfig, Autoencoder, ae_loss
 from .data import MeshDataset, normalize, sample_surface
-from .geometry import random_rotation_matrices, rotate
+from .geometry import quaternion_to_matrix, random_rotation_matrices, rotate
 from .vae import LatentVAE, VAEConfig, vae_loss
 
 log = logging.getLogger(__name__)
@@ -302,18 +302,12 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe) 
         rotations = random_rotation_matrices(len(clouds), full=chosen.ae.full_rotations)
         inputs = rotate(clouds, rotations)
         q = ae.encode_rotation(inputs)
-        x_c, _ = ae.encode_shape(inputs, _rotation_of(q))
+        x_c, _ = ae.encode_shape(inputs, quaternion_to_matrix(q))
         qs.append(q)
         codes.append(x_c)
         spectrum.append(torch.from_numpy(np.repeat(spectra[index][None], len(clouds), 0)).float())
     log.info("bank: %d training meshes x %d rotations encoded", len(sampler.meshes), chosen.bank_copies)
     return {"q": torch.cat(qs), "x_c": torch.cat(codes), "spectrum": torch.cat(spectrum)}
-
-
-def _rotation_of(q):
-    from .geometry import quaternion_to_matrix
-
-    return quaternion_to_matrix(q)
 
 
 def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int) -> None:

@@ -81,32 +81,20 @@ pub fn run_feed(
 ) -> Result<FeedSummary, FeedError> {
     let prefix = options.key_prefix.trim_end_matches('/');
     let cdr = |schema: &str| Encoding::APPLICATION_CDR.with_schema(schema);
-    let points = session
-        .declare_publisher(format!("{prefix}/points"))
-        .encoding(cdr("sensor_msgs/msg/PointCloud2"))
-        .congestion_control(CongestionControl::Block)
-        .wait()
-        .map_err(zenoh_error)?;
-    let truth = session
-        .declare_publisher(format!("{prefix}/ground_truth"))
-        .encoding(Encoding::APPLICATION_JSON)
-        .congestion_control(CongestionControl::Block)
-        .wait()
-        .map_err(zenoh_error)?;
+    let declare = |key: &str, encoding: Encoding| {
+        session
+            .declare_publisher(format!("{prefix}/{key}"))
+            .encoding(encoding)
+            .congestion_control(CongestionControl::Block)
+            .wait()
+            .map_err(zenoh_error)
+    };
+    let points = declare("points", cdr("sensor_msgs/msg/PointCloud2"))?;
+    let truth = declare("ground_truth", Encoding::APPLICATION_JSON)?;
     let images = if options.depth_images {
         Some((
-            session
-                .declare_publisher(format!("{prefix}/depth"))
-                .encoding(cdr("sensor_msgs/msg/Image"))
-                .congestion_control(CongestionControl::Block)
-                .wait()
-                .map_err(zenoh_error)?,
-            session
-                .declare_publisher(format!("{prefix}/camera_info"))
-                .encoding(cdr("sensor_msgs/msg/CameraInfo"))
-                .congestion_control(CongestionControl::Block)
-                .wait()
-                .map_err(zenoh_error)?,
+            declare("depth", cdr("sensor_msgs/msg/Image"))?,
+            declare("camera_info", cdr("sensor_msgs/msg/CameraInfo"))?,
         ))
     } else {
         None

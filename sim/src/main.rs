@@ -276,10 +276,18 @@ fn pose_requests(requests: &std::path::Path, out: &std::path::Path) -> Result<()
         let request: PoseRequest = serde_json::from_str(line)
             .with_context(|| format!("{}:{}: not a pose request", requests.display(), number + 1))?;
         let valid_name = !request.name.is_empty()
-            && request.name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+            && request
+                .name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
             && !request.name.starts_with('.');
         if !valid_name {
-            bail!("{}:{}: name '{}' must be letters, digits, '-', '_' or '.'", requests.display(), number + 1, request.name);
+            bail!(
+                "{}:{}: name '{}' must be letters, digits, '-', '_' or '.'",
+                requests.display(),
+                number + 1,
+                request.name
+            );
         }
         parsed.push(request);
     }
@@ -287,25 +295,41 @@ fn pose_requests(requests: &std::path::Path, out: &std::path::Path) -> Result<()
     // Group by subject: meshing a subject costs far more than posing it.
     let mut subjects: Vec<(Family, Vec<f64>, Vec<&PoseRequest>)> = Vec::new();
     for request in &parsed {
-        match subjects.iter_mut().find(|(f, b, _)| *f == request.family && *b == request.beta) {
+        match subjects
+            .iter_mut()
+            .find(|(f, b, _)| *f == request.family && *b == request.beta)
+        {
             Some((_, _, group)) => group.push(request),
             None => subjects.push((request.family, request.beta.clone(), vec![request])),
         }
     }
-    subjects.par_iter().try_for_each(|(family, beta, group)| -> Result<()> {
-        let subject = Subject::new(*family, beta.clone())?;
-        for request in group {
-            let mesh = subject.pose(&request.theta).with_context(|| format!("request '{}'", request.name))?;
-            let path = out.join(format!("{}.ply", request.name));
-            let mut file = std::io::BufWriter::new(
-                std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?,
-            );
-            write_ply(&mesh, &format!("gdvae-sim {} pose request {}", family.name(), request.name), &mut file)
+    subjects
+        .par_iter()
+        .try_for_each(|(family, beta, group)| -> Result<()> {
+            let subject = Subject::new(*family, beta.clone())?;
+            for request in group {
+                let mesh = subject
+                    .pose(&request.theta)
+                    .with_context(|| format!("request '{}'", request.name))?;
+                let path = out.join(format!("{}.ply", request.name));
+                let mut file = std::io::BufWriter::new(
+                    std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?,
+                );
+                write_ply(
+                    &mesh,
+                    &format!("gdvae-sim {} pose request {}", family.name(), request.name),
+                    &mut file,
+                )
                 .with_context(|| format!("writing {}", path.display()))?;
-        }
-        Ok(())
-    })?;
-    println!("wrote {} meshes of {} subjects to {}", parsed.len(), subjects.len(), out.display());
+            }
+            Ok(())
+        })?;
+    println!(
+        "wrote {} meshes of {} subjects to {}",
+        parsed.len(),
+        subjects.len(),
+        out.display()
+    );
     Ok(())
 }
 

@@ -67,7 +67,12 @@ pub fn read_cloud(path: &Path, options: &FileOptions) -> Result<FileCloud, FileE
         "pcd" => (read_pcd(path, options).map_err(invalid)?, Vec::new()),
         "obj" => read_obj(path, options).map_err(invalid)?,
         "xyz" | "csv" | "txt" => (read_text(path, options).map_err(invalid)?, Vec::new()),
-        other => return Err(invalid(format!("unknown file type '.{other}' (known: {})", EXTENSIONS.join(", ")))),
+        other => {
+            return Err(invalid(format!(
+                "unknown file type '.{other}' (known: {})",
+                EXTENSIONS.join(", ")
+            )))
+        }
     };
     let total = points.len();
     let finite: Vec<[f64; 3]> = points.into_iter().filter(|p| p.iter().all(|c| c.is_finite())).collect();
@@ -76,7 +81,9 @@ pub fn read_cloud(path: &Path, options: &FileOptions) -> Result<FileCloud, FileE
         finite.iter().map(|p| p.map(|c| c as f32)).collect()
     } else {
         if dropped_non_finite > 0 {
-            return Err(invalid(format!("{dropped_non_finite} mesh vertices have non-finite coordinates")));
+            return Err(invalid(format!(
+                "{dropped_non_finite} mesh vertices have non-finite coordinates"
+            )));
         }
         sample_surface(&finite, &faces, options.mesh_samples, options.seed).map_err(invalid)?
     };
@@ -102,7 +109,11 @@ fn read_ply(path: &Path, options: &FileOptions) -> Result<Parsed, String> {
     let mut binary = false;
     loop {
         let mut line = String::new();
-        if reader.read_line(&mut line).map_err(|e| format!("reading header: {e}"))? == 0 {
+        if reader
+            .read_line(&mut line)
+            .map_err(|e| format!("reading header: {e}"))?
+            == 0
+        {
             return Err("no end_header line: not a PLY file, or truncated".into());
         }
         if header.len() > 1 << 16 {
@@ -120,7 +131,10 @@ fn read_ply(path: &Path, options: &FileOptions) -> Result<Parsed, String> {
                 .and_then(|c| c.parse().ok())
                 .ok_or_else(|| format!("bad element line '{}'", line.trim()))?;
             if count > options.max_points as u64 * 4 || (binary && count > length) {
-                return Err(format!("header claims {count} {} elements; the file has {length} bytes", rest.split_whitespace().next().unwrap_or("?")));
+                return Err(format!(
+                    "header claims {count} {} elements; the file has {length} bytes",
+                    rest.split_whitespace().next().unwrap_or("?")
+                ));
             }
         }
     }
@@ -144,7 +158,11 @@ fn read_ply(path: &Path, options: &FileOptions) -> Result<Parsed, String> {
     };
     let vertices = ply.payload.get("vertex").ok_or("no 'vertex' element")?;
     if vertices.len() > options.max_points {
-        return Err(format!("{} vertices (more than max_points = {})", vertices.len(), options.max_points));
+        return Err(format!(
+            "{} vertices (more than max_points = {})",
+            vertices.len(),
+            options.max_points
+        ));
     }
     let mut points = Vec::with_capacity(vertices.len());
     for (index, vertex) in vertices.iter().enumerate() {
@@ -191,7 +209,10 @@ fn read_pcd(path: &Path, options: &FileOptions) -> Result<Vec<[f64; 3]>, String>
 
     let meta = PcdMeta::from_path(path).map_err(|e| format!("not a valid PCD header: {e}"))?;
     if meta.num_points > options.max_points as u64 {
-        return Err(format!("header claims {} points (more than max_points = {})", meta.num_points, options.max_points));
+        return Err(format!(
+            "header claims {} points (more than max_points = {})",
+            meta.num_points, options.max_points
+        ));
     }
     let point_bytes: u64 = meta
         .field_defs
@@ -206,10 +227,16 @@ fn read_pcd(path: &Path, options: &FileOptions) -> Result<Vec<[f64; 3]>, String>
         ));
     }
     let position = |name: &str| {
-        meta.field_defs
-            .iter()
-            .position(|f| f.name == name)
-            .ok_or_else(|| format!("no '{name}' field (fields: {})", meta.field_defs.iter().map(|f| f.name.as_str()).collect::<Vec<_>>().join(" ")))
+        meta.field_defs.iter().position(|f| f.name == name).ok_or_else(|| {
+            format!(
+                "no '{name}' field (fields: {})",
+                meta.field_defs
+                    .iter()
+                    .map(|f| f.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(" ")
+            )
+        })
     };
     let (ix, iy, iz) = (position("x")?, position("y")?, position("z")?);
     let reader = DynReader::open(path).map_err(|e| format!("cannot read PCD data: {e}"))?;
@@ -230,7 +257,13 @@ fn read_pcd(path: &Path, options: &FileOptions) -> Result<Vec<[f64; 3]>, String>
     let mut points = Vec::with_capacity(meta.num_points as usize);
     for (index, record) in reader.enumerate() {
         let record = record.map_err(|e| format!("point {index}: {e}"))?;
-        let get = |i: usize| record.0.get(i).and_then(first).ok_or_else(|| format!("point {index}: field {i} is empty"));
+        let get = |i: usize| {
+            record
+                .0
+                .get(i)
+                .and_then(first)
+                .ok_or_else(|| format!("point {index}: field {i} is empty"))
+        };
         points.push([get(ix)?, get(iy)?, get(iz)?]);
     }
     Ok(points)
@@ -256,7 +289,11 @@ fn read_obj(path: &Path, options: &FileOptions) -> Result<Parsed, String> {
         if mesh.positions.len() / 3 > options.max_points.saturating_sub(offset) {
             return Err(format!("more than max_points = {} vertices", options.max_points));
         }
-        points.extend(mesh.positions.chunks_exact(3).map(|p| [p[0] as f64, p[1] as f64, p[2] as f64]));
+        points.extend(
+            mesh.positions
+                .chunks_exact(3)
+                .map(|p| [p[0] as f64, p[1] as f64, p[2] as f64]),
+        );
         for triangle in mesh.indices.chunks_exact(3) {
             let face = [0, 1, 2].map(|k| offset + triangle[k] as usize);
             if face.iter().any(|&i| i >= points.len()) {
@@ -297,7 +334,10 @@ fn read_text(path: &Path, options: &FileOptions) -> Result<Vec<[f64; 3]>, String
         if line.is_empty() || line.starts_with('#') || line.starts_with("//") {
             continue;
         }
-        let values: Vec<&str> = line.split(|c: char| c == ',' || c == ';' || c.is_whitespace()).filter(|s| !s.is_empty()).collect();
+        let values: Vec<&str> = line
+            .split(|c: char| c == ',' || c == ';' || c.is_whitespace())
+            .filter(|s| !s.is_empty())
+            .collect();
         let parsed: Option<Vec<f64>> = values.iter().take(3).map(|v| v.parse().ok()).collect();
         match parsed {
             Some(v) if v.len() == 3 => points.push([v[0], v[1], v[2]]),
@@ -313,12 +353,21 @@ fn read_text(path: &Path, options: &FileOptions) -> Result<Vec<[f64; 3]>, String
 }
 
 /// `count` points uniformly over the surface (area-weighted), seeded.
-fn sample_surface(vertices: &[[f64; 3]], faces: &[[usize; 3]], count: usize, seed: u64) -> Result<Vec<[f32; 3]>, String> {
+fn sample_surface(
+    vertices: &[[f64; 3]],
+    faces: &[[usize; 3]],
+    count: usize,
+    seed: u64,
+) -> Result<Vec<[f32; 3]>, String> {
     let area = |f: &[usize; 3]| {
         let [a, b, c] = f.map(|i| vertices[i]);
         let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
         let v = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
-        let cross = [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]];
+        let cross = [
+            u[1] * v[2] - u[2] * v[1],
+            u[2] * v[0] - u[0] * v[2],
+            u[0] * v[1] - u[1] * v[0],
+        ];
         0.5 * (cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2]).sqrt()
     };
     let mut cumulative = Vec::with_capacity(faces.len());

@@ -60,7 +60,11 @@ impl<'a> Cdr<'a> {
     fn u32(&mut self, what: &'static str) -> Result<u32, CdrError> {
         self.align(4);
         let b: [u8; 4] = self.take(4, what)?.try_into().unwrap();
-        Ok(if self.little { u32::from_le_bytes(b) } else { u32::from_be_bytes(b) })
+        Ok(if self.little {
+            u32::from_le_bytes(b)
+        } else {
+            u32::from_be_bytes(b)
+        })
     }
 
     fn i32(&mut self, what: &'static str) -> Result<i32, CdrError> {
@@ -70,7 +74,11 @@ impl<'a> Cdr<'a> {
     fn f64(&mut self, what: &'static str) -> Result<f64, CdrError> {
         self.align(8);
         let b: [u8; 8] = self.take(8, what)?.try_into().unwrap();
-        Ok(if self.little { f64::from_le_bytes(b) } else { f64::from_be_bytes(b) })
+        Ok(if self.little {
+            f64::from_le_bytes(b)
+        } else {
+            f64::from_be_bytes(b)
+        })
     }
 
     fn string(&mut self, what: &'static str) -> Result<String, CdrError> {
@@ -125,7 +133,11 @@ fn read_scalar(bytes: &[u8], datatype: u8, big_endian: bool) -> f64 {
     macro_rules! num {
         ($t:ty, $n:expr) => {{
             let b: [u8; $n] = bytes[..$n].try_into().unwrap();
-            (if big_endian { <$t>::from_be_bytes(b) } else { <$t>::from_le_bytes(b) }) as f64
+            (if big_endian {
+                <$t>::from_be_bytes(b)
+            } else {
+                <$t>::from_le_bytes(b)
+            }) as f64
         }};
     }
     match datatype {
@@ -163,7 +175,9 @@ pub fn decode_point_cloud2(payload: &[u8], max_points: usize) -> Result<DecodedC
             _ => continue,
         };
         if datatype_size(datatype).is_none() {
-            return Err(CdrError::Invalid(format!("field '{name}' has unknown datatype {datatype}")));
+            return Err(CdrError::Invalid(format!(
+                "field '{name}' has unknown datatype {datatype}"
+            )));
         }
         axes[axis] = Some((offset, datatype));
     }
@@ -180,7 +194,9 @@ pub fn decode_point_cloud2(payload: &[u8], max_points: usize) -> Result<DecodedC
         .ok_or_else(|| CdrError::Invalid(format!("{height} x {width} points (more than {max_points})")))?;
     for (offset, datatype) in [x, y, z] {
         if offset + datatype_size(datatype).unwrap() > point_step {
-            return Err(CdrError::Invalid(format!("a field at offset {offset} overruns point_step {point_step}")));
+            return Err(CdrError::Invalid(format!(
+                "a field at offset {offset} overruns point_step {point_step}"
+            )));
         }
     }
     if row_step < width * point_step || data.len() < height.saturating_sub(1) * row_step + width * point_step {
@@ -248,7 +264,10 @@ pub fn decode_camera_info(payload: &[u8]) -> Result<(Header, CameraIntrinsics), 
         cy: k[5],
     };
     if !(intrinsics.fx > 0.0 && intrinsics.fy > 0.0 && intrinsics.fx.is_finite() && intrinsics.fy.is_finite()) {
-        return Err(CdrError::Invalid(format!("camera matrix has fx = {}, fy = {}", k[0], k[4])));
+        return Err(CdrError::Invalid(format!(
+            "camera matrix has fx = {}, fy = {}",
+            k[0], k[4]
+        )));
     }
     Ok((header, intrinsics))
 }
@@ -272,13 +291,20 @@ pub fn decode_depth_image(
     let (pixel, scale, datatype) = match encoding.as_str() {
         "16UC1" | "mono16" => (2, 0.001, 4u8),
         "32FC1" => (4, 1.0, 7u8),
-        other => return Err(CdrError::Invalid(format!("depth encoding '{other}' (supported: 16UC1, 32FC1)"))),
+        other => {
+            return Err(CdrError::Invalid(format!(
+                "depth encoding '{other}' (supported: 16UC1, 32FC1)"
+            )))
+        }
     };
     if width.saturating_mul(height) > max_points.saturating_mul(step.max(1) * step.max(1)) {
         return Err(CdrError::Invalid(format!("{width} x {height} image is too large")));
     }
     if row_step < width * pixel || data.len() < height.saturating_sub(1) * row_step + width * pixel {
-        return Err(CdrError::Invalid(format!("image data of {} bytes does not hold {height} rows of {row_step} bytes", data.len())));
+        return Err(CdrError::Invalid(format!(
+            "image data of {} bytes does not hold {height} rows of {row_step} bytes",
+            data.len()
+        )));
     }
     if width as u32 != intrinsics.width || height as u32 != intrinsics.height {
         return Err(CdrError::Invalid(format!(

@@ -6,7 +6,9 @@ use std::path::{Path, PathBuf};
 use gdvae_node::sources::files::{read_cloud, FileOptions};
 
 fn sample(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("sim/samples/meshes").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("sim/samples/meshes")
+        .join(name)
 }
 
 #[test]
@@ -17,28 +19,49 @@ fn ply_meshes_from_the_sim_are_sampled_over_their_surface() {
     };
     let read = read_cloud(&sample("quadruped_rest.ply"), &options).unwrap();
     assert_eq!(read.cloud.len(), 5000);
-    assert_eq!(read, read_cloud(&sample("quadruped_rest.ply"), &options).unwrap(), "seeded");
+    assert_eq!(
+        read,
+        read_cloud(&sample("quadruped_rest.ply"), &options).unwrap(),
+        "seeded"
+    );
     let top = read.cloud.points.iter().map(|p| p[2]).fold(f32::MIN, f32::max);
-    assert!((0.4..1.2).contains(&top), "a quadruped stands under a metre and a bit: {top}");
+    assert!(
+        (0.4..1.2).contains(&top),
+        "a quadruped stands under a metre and a bit: {top}"
+    );
 }
 
 #[test]
 fn obj_xyz_and_csv_text() {
     let dir = tempfile::tempdir().unwrap();
     let obj = dir.path().join("tetra.obj");
-    std::fs::write(&obj, "# tetrahedron\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n").unwrap();
+    std::fs::write(
+        &obj,
+        "# tetrahedron\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n",
+    )
+    .unwrap();
     let read = read_cloud(&obj, &FileOptions::default()).unwrap();
     assert_eq!(read.cloud.len(), FileOptions::default().mesh_samples);
-    assert!(read.cloud.points.iter().all(|p| p.iter().all(|c| (-1e-6..=1.0 + 1e-6).contains(c))));
+    assert!(read
+        .cloud
+        .points
+        .iter()
+        .all(|p| p.iter().all(|c| (-1e-6..=1.0 + 1e-6).contains(c))));
 
     let points_only = dir.path().join("points.obj");
     std::fs::write(&points_only, "v 0 0 0\nv 1 2 3\n").unwrap();
-    assert_eq!(read_cloud(&points_only, &FileOptions::default()).unwrap().cloud.len(), 2);
+    assert_eq!(
+        read_cloud(&points_only, &FileOptions::default()).unwrap().cloud.len(),
+        2
+    );
 
     let xyz = dir.path().join("cloud.xyz");
     std::fs::write(&xyz, "x y z\n0 0 0\n1 2 3\nnan 0 0\n4 5 6 extra columns\n").unwrap();
     let read = read_cloud(&xyz, &FileOptions::default()).unwrap();
-    assert_eq!(read.cloud.points, vec![[0.0, 0.0, 0.0], [1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
+    assert_eq!(
+        read.cloud.points,
+        vec![[0.0, 0.0, 0.0], [1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]
+    );
     assert_eq!(read.dropped_non_finite, 1);
 
     let csv = dir.path().join("cloud.csv");
@@ -80,6 +103,9 @@ fn bad_files_are_clear_errors_naming_the_file() {
         std::fs::write(&path, content).unwrap();
         let error = read_cloud(&path, &FileOptions::default()).err().map(|e| e.to_string());
         let error = error.unwrap_or_else(|| panic!("{name} was accepted"));
-        assert!(error.contains(name) && error.contains(expected), "{name}: '{error}' lacks '{expected}'");
+        assert!(
+            error.contains(name) && error.contains(expected),
+            "{name}: '{error}' lacks '{expected}'"
+        );
     }
 }

@@ -13,7 +13,9 @@ fn shipped() -> PathBuf {
 }
 
 fn prepared(bundle: &Bundle, mesh: &str, seed: u64) -> Vec<[f32; 3]> {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("sim/samples/meshes").join(mesh);
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("sim/samples/meshes")
+        .join(mesh);
     let cloud = read_cloud(&path, &FileOptions::default()).unwrap().cloud;
     let n = bundle.manifest.sizes.points;
     let mut points = subsample(&cloud.points, n, n / 4, Sampling::Farthest, 0.01, seed).unwrap();
@@ -45,7 +47,10 @@ fn the_shipped_bundle_encodes_in_onnx_runtime() {
         assert!((x - y).abs() < 1e-4, "batched {y} vs alone {x}");
     }
     assert_eq!(alone, encoder.encode(&[&a]).unwrap().remove(0));
-    assert_ne!(batch[0].z_i_mean, batch[1].z_i_mean, "a biped and a quadruped differ in shape");
+    assert_ne!(
+        batch[0].z_i_mean, batch[1].z_i_mean,
+        "a biped and a quadruped differ in shape"
+    );
 }
 
 #[test]
@@ -76,5 +81,8 @@ fn altered_or_unsupported_bundles_are_refused_with_the_reason() {
         assert!(error.contains(expected), "{error} lacks '{expected}'");
     }
     std::fs::write(dir.path().join("manifest.json"), "{ not json").unwrap();
-    assert!(Bundle::load(dir.path()).unwrap_err().to_string().contains("not a valid manifest"));
+    assert!(Bundle::load(dir.path())
+        .unwrap_err()
+        .to_string()
+        .contains("not a valid manifest"));
 }

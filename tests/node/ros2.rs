@@ -72,14 +72,25 @@ fn truncated_and_hostile_payloads_are_errors() {
     for cut in [0, 3, 10, 30, good.len() - 5] {
         assert!(decode_point_cloud2(&good[..cut], 1000).is_err(), "cut at {cut}");
     }
-    let billions = cloud2(&[("x", 0, 7), ("y", 4, 7), ("z", 8, 7)], 12, &[vec![0; 12]], 2_000_000_000);
+    let billions = cloud2(
+        &[("x", 0, 7), ("y", 4, 7), ("z", 8, 7)],
+        12,
+        &[vec![0; 12]],
+        2_000_000_000,
+    );
     let error = decode_point_cloud2(&billions, 1_000_000).unwrap_err();
-    assert!(matches!(error, CdrError::Invalid(ref m) if m.contains("2000000000")), "{error}");
+    assert!(
+        matches!(error, CdrError::Invalid(ref m) if m.contains("2000000000")),
+        "{error}"
+    );
     let no_z = cloud2(&[("x", 0, 7), ("y", 4, 7)], 8, &[vec![0; 8]], 1);
     assert!(decode_point_cloud2(&no_z, 1000).is_err());
     let overrun = cloud2(&[("x", 0, 7), ("y", 4, 7), ("z", 10, 7)], 12, &[vec![0; 12]], 1);
     assert!(decode_point_cloud2(&overrun, 1000).is_err());
-    assert_eq!(decode_point_cloud2(&[7, 7, 0, 0, 1], 10).unwrap_err(), CdrError::Representation(0x0707));
+    assert_eq!(
+        decode_point_cloud2(&[7, 7, 0, 0, 1], 10).unwrap_err(),
+        CdrError::Representation(0x0707)
+    );
 }
 
 #[test]
@@ -94,7 +105,10 @@ fn the_sample_recording_decodes_to_its_ground_truth_point_counts() {
             "/camera/depth/points" => clouds.push(decode_point_cloud2(&message.data, 1 << 22).unwrap()),
             "/sim/ground_truth" => {
                 let truth: serde_json::Value = serde_json::from_slice(&message.data).unwrap();
-                counts.push((truth["stamp_nanos"].as_u64().unwrap(), truth["points"].as_u64().unwrap() as usize));
+                counts.push((
+                    truth["stamp_nanos"].as_u64().unwrap(),
+                    truth["points"].as_u64().unwrap() as usize,
+                ));
             }
             _ => {}
         }
@@ -103,6 +117,9 @@ fn the_sample_recording_decodes_to_its_ground_truth_point_counts() {
     for (cloud, (stamp, count)) in clouds.iter().zip(counts) {
         assert_eq!(cloud.header.stamp_ns, stamp);
         assert_eq!(cloud.points.len(), count);
-        assert!(cloud.points.iter().all(|p| p[2] > 0.3), "optical-frame depths are positive");
+        assert!(
+            cloud.points.iter().all(|p| p[2] > 0.3),
+            "optical-frame depths are positive"
+        );
     }
 }

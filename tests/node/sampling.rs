@@ -18,7 +18,10 @@ fn every_method_returns_exactly_n_points_deterministically() {
         assert_eq!(a.len(), 256);
         assert_eq!(a, b, "{method:?}: same seed, same points");
         assert_ne!(a, c, "{method:?}: another seed, other points");
-        assert!(a.iter().all(|p| cloud.contains(p)), "{method:?}: points come from the cloud");
+        assert!(
+            a.iter().all(|p| cloud.contains(p)),
+            "{method:?}: points come from the cloud"
+        );
     }
 }
 
