@@ -34,7 +34,7 @@ pub struct ModelInfo {
     pub recipe: String,
 }
 
-#[derive(Debug, Clone, Copy, Deserialize)]
+#[derive(Debug, Clone, Copy, Deserialize, serde::Serialize)]
 pub struct Sizes {
     pub points: usize,
     pub spectrum: usize,

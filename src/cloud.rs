@@ -43,6 +43,8 @@ pub struct Frame {
     /// Sensor stamp (ns since the Unix epoch), when the source has one.
     pub sensor_stamp_ns: Option<u64>,
     pub ingested: Instant,
+    /// Wall-clock ingest time (ns since the Unix epoch), published as the ingest stamp.
+    pub ingest_unix_ns: u64,
     pub unit: Unit,
     pub cloud: PointCloud,
 }

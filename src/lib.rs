@@ -1,11 +1,20 @@
-//! gdvae-node: turns point-cloud frames into GDVAE++ rotation, pose and shape codes.
+//! gdvae-node: turns point-cloud frames into GDVAE++ rotation, pose and shape codes, tracks them
+//! over time and publishes them.
 //!
 //! Stages (see ARCHITECTURE.md): `sources` (files, recordings, network) -> `prepare` (units,
-//! centring, scaling, subsampling to the model's N_p) -> `runtime` (ONNX Runtime encoder of a
-//! checked `bundle`) -> tracking and publishing (to come).
+//! gravity frame, crop, ground, outliers, centring, scaling, subsampling to N_p) -> `runtime`
+//! (ONNX Runtime encoder of a checked `bundle`) -> `track` (shape fusion, identity changes, pose
+//! smoothing) -> `publish` (zenoh, JSON lines). `pipeline` joins them; `config` describes a run.
 
+pub mod benchmark;
 pub mod bundle;
 pub mod cloud;
+pub mod config;
+pub mod pipeline;
 pub mod prepare;
+pub mod publish;
 pub mod runtime;
 pub mod sources;
+pub mod state;
+pub mod stats;
+pub mod track;

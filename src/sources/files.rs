@@ -393,3 +393,70 @@ fn sample_surface(
     }
     Ok(points)
 }
+
+/// The files a files source reads: the file itself, or the readable files of a folder by name.
+pub fn list_files(path: &Path) -> Result<Vec<std::path::PathBuf>, FileError> {
+    let io = |source| FileError::Io {
+        path: path.display().to_string(),
+        source,
+    };
+    if !path.is_dir() {
+        std::fs::metadata(path).map_err(io)?;
+        return Ok(vec![path.to_path_buf()]);
+    }
+    let mut files: Vec<_> = std::fs::read_dir(path)
+        .map_err(io)?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            p.extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+        })
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        return Err(FileError::Invalid {
+            path: path.display().to_string(),
+            reason: format!("folder holds no point-cloud files ({})", EXTENSIONS.join(", ")),
+        });
+    }
+    Ok(files)
+}
+
+/// Runs a files source: every file once (or repeatedly with `repeat`), paced at `rate_hz`
+/// (0: as fast as the pipeline takes them). A file that cannot be read is a rejection.
+pub fn run(settings: &crate::config::SourceSettings, mut outlet: super::Outlet) -> Result<(), FileError> {
+    let path = settings.path.as_deref().unwrap_or(Path::new(""));
+    let files = list_files(path)?;
+    let options = FileOptions {
+        max_points: settings.max_points,
+        ..FileOptions::default()
+    };
+    let unit = settings.unit.unwrap_or(crate::cloud::Unit::Metre);
+    let period = (settings.rate_hz > 0.0).then(|| std::time::Duration::from_secs_f64(1.0 / settings.rate_hz));
+    let started = std::time::Instant::now();
+    let mut sent = 0u32;
+    loop {
+        for file in &files {
+            if outlet.stopping() {
+                return Ok(());
+            }
+            if let Some(period) = period {
+                let due = started + period * sent;
+                std::thread::sleep(due.saturating_duration_since(std::time::Instant::now()));
+            }
+            sent = sent.saturating_add(1);
+            let open = match read_cloud(file, &options) {
+                Ok(read) => outlet.frame(read.cloud, unit, None, read.dropped_non_finite),
+                Err(error) => outlet.reject(error.to_string(), None),
+            };
+            if !open {
+                return Ok(());
+            }
+        }
+        if !settings.repeat {
+            return Ok(());
+        }
+    }
+}

@@ -1,5 +1,156 @@
-//! Sources of frames: files and folders (`files`), ROS 2 messages in CDR (`ros2`), MCAP replay and
-//! zenoh subscriptions (to come). Each source produces `cloud::Frame`s tagged with its stream id.
+//! Sources of frames, each feeding one stream: files and folders (`files`), MCAP / rosbag2 replay
+//! (`mcap`), zenoh subscriptions (`zenoh`); `ros2` decodes the ROS 2 messages the last two carry.
+//!
+//! A source hands its frames to an `Outlet`, its own bounded channel into the pipeline. The outlet
+//! applies the stream's policy: a live source never waits (when the pipeline is behind, the oldest
+//! queued frame is dropped and counted); a replayed source waits, so nothing is lost. A frame the
+//! source cannot decode becomes a counted `Rejection` naming the input and the reason.
 
 pub mod files;
+pub mod mcap;
 pub mod ros2;
+pub mod zenoh;
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+use crossbeam_channel::{Receiver, Sender, TrySendError};
+
+use crate::cloud::{Frame, PointCloud, Unit};
+use crate::stats::Stats;
+
+/// A frame that will not reach the encoder, and why.
+#[derive(Debug, Clone)]
+pub struct Rejection {
+    pub stream: String,
+    pub sequence: u64,
+    pub stage: &'static str,
+    pub reason: String,
+    pub sensor_stamp_ns: Option<u64>,
+    pub ingest_unix_ns: u64,
+}
+
+/// What sources send into the pipeline.
+#[derive(Debug)]
+pub enum Ingest {
+    Frame(Frame),
+    Rejected(Rejection),
+}
+
+impl Ingest {
+    pub fn stream(&self) -> &str {
+        match self {
+            Ingest::Frame(f) => &f.stream,
+            Ingest::Rejected(r) => &r.stream,
+        }
+    }
+}
+
+pub fn unix_now_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0)
+}
+
+/// One source's entry into the pipeline.
+pub struct Outlet {
+    stream: String,
+    live: bool,
+    sender: Sender<Ingest>,
+    /// Held by live outlets only, to drop the oldest queued frame.
+    oldest: Option<Receiver<Ingest>>,
+    sequence: u64,
+    stats: Arc<Stats>,
+    stop: Arc<AtomicBool>,
+}
+
+impl Outlet {
+    /// A channel of `capacity` for one stream: the outlet, and the receiving end for the pipeline.
+    pub fn new(stream: &str, live: bool, capacity: usize, stats: Arc<Stats>, stop: Arc<AtomicBool>) -> (Self, Receiver<Ingest>) {
+        let (sender, receiver) = crossbeam_channel::bounded(capacity.max(1));
+        let outlet = Self {
+            stream: stream.to_string(),
+            live,
+            sender,
+            oldest: live.then(|| receiver.clone()),
+            sequence: 0,
+            stats,
+            stop,
+        };
+        (outlet, receiver)
+    }
+
+    pub fn stream(&self) -> &str {
+        &self.stream
+    }
+
+    pub fn stopping(&self) -> bool {
+        self.stop.load(Ordering::Relaxed)
+    }
+
+    /// Sends a decoded frame. Returns false when the pipeline has shut down.
+    pub fn frame(&mut self, cloud: PointCloud, unit: Unit, sensor_stamp_ns: Option<u64>, dropped_non_finite: usize) -> bool {
+        let frame = Frame {
+            stream: self.stream.clone(),
+            sequence: self.next_sequence(),
+            sensor_stamp_ns,
+            ingested: Instant::now(),
+            ingest_unix_ns: unix_now_ns(),
+            unit,
+            cloud,
+        };
+        if dropped_non_finite > 0 {
+            self.stats.stream(&self.stream).add_non_finite(dropped_non_finite as u64);
+        }
+        self.send(Ingest::Frame(frame))
+    }
+
+    /// Sends a rejection of an input the source could not decode (logged and counted downstream).
+    pub fn reject(&mut self, reason: String, sensor_stamp_ns: Option<u64>) -> bool {
+        let rejection = Rejection {
+            stream: self.stream.clone(),
+            sequence: self.next_sequence(),
+            stage: "source",
+            reason,
+            sensor_stamp_ns,
+            ingest_unix_ns: unix_now_ns(),
+        };
+        self.send(Ingest::Rejected(rejection))
+    }
+
+    fn next_sequence(&mut self) -> u64 {
+        let s = self.sequence;
+        self.sequence += 1;
+        self.stats.stream(&self.stream).add_received();
+        s
+    }
+
+    fn send(&self, item: Ingest) -> bool {
+        if !self.live {
+            return self.sender.send(item).is_ok();
+        }
+        let mut item = item;
+        loop {
+            match self.sender.try_send(item) {
+                Ok(()) => return true,
+                Err(TrySendError::Disconnected(_)) => return false,
+                Err(TrySendError::Full(back)) => {
+                    item = back;
+                    if let Some(Ok(dropped)) = self.oldest.as_ref().map(Receiver::try_recv) {
+                        let stream = self.stats.stream(&self.stream);
+                        stream.add_dropped();
+                        if stream.dropped() == 1 || stream.dropped() % 100 == 0 {
+                            log::warn!(
+                                "{}: pipeline behind, dropped the oldest queued frame ({} dropped so far)",
+                                dropped.stream(),
+                                stream.dropped()
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+}

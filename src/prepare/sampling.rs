@@ -1,4 +1,4 @@
-//! Prepare: from a sensor's points to the model's input (N_p points in model units, centred).
+//! Subsampling to the model's N_p and scaling into model units.
 //!
 //! Subsampling is deterministic for a seed: farthest point sampling (the default: even coverage,
 //! which the encoder was trained on), uniform random, or voxel-grid thinning followed by random
@@ -21,6 +21,8 @@ pub enum Sampling {
 pub enum PrepareError {
     #[error("{got} points after filtering; at least {minimum} are needed")]
     TooFewPoints { got: usize, minimum: usize },
+    #[error("no ground plane found (prepare.auto_ground is on)")]
+    NoGround,
 }
 
 /// Farthest point sampling: start at a seeded random point, then repeatedly take the point

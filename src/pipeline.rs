@@ -1,0 +1,680 @@
+//! The pipeline: a thread per stage, joined by bounded crossbeam channels.
+//!
+//! ```text
+//! sources ─(one channel each)─> ingest ─> prepare ×P ─> batcher ─> encode ×W ─> track ─> publish
+//! ```
+//! - `ingest` is the only reader of the sources' channels; it gives every item (frame or
+//!   rejection) a ticket. Items may overtake each other in the prepare and encode pools; `track`
+//!   puts them back in ticket order, so each stream is tracked and published in order.
+//! - Live sources drop their oldest frame when the pipeline is behind (see `sources::Outlet`);
+//!   replayed sources wait. From ingest on, nothing is dropped: every ticket ends as one published
+//!   state or one published, logged and counted rejection.
+//! - Stop (SIGINT/SIGTERM, or the end of every replayed source) drains: sources stop producing,
+//!   each stage finishes what it holds and closes its output, and `run` returns when the publisher
+//!   has sent the last item.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use crossbeam_channel::{bounded, Receiver, Select, Sender};
+use zenoh::{Session, Wait};
+
+use crate::bundle::Bundle;
+use crate::config::{Config, SourceKind};
+use crate::prepare::{Prepared, Preparer};
+use crate::publish::Publisher;
+use crate::runtime::{Encoder, Encoding};
+use crate::sources::{self, unix_now_ns, Ingest, Outlet, Rejection};
+use crate::state::{self, Output, State};
+use crate::stats::{Snapshot, Stats};
+use crate::track::{confidence_from_log_variance, PoseFilter, ShapeFilter};
+
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error(transparent)]
+    Runtime(#[from] crate::runtime::RuntimeError),
+    #[error(transparent)]
+    Publish(#[from] crate::publish::PublishError),
+    #[error("zenoh source '{stream}': {message}")]
+    Subscribe { stream: String, message: String },
+    #[error("{0}")]
+    Thread(String),
+}
+
+/// How a run behaves beyond its config.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RunOptions {
+    /// Publish with blocking congestion control (replay benchmarks and tests: nothing lost).
+    pub lossless_publish: bool,
+}
+
+#[derive(Debug, Clone)]
+pub struct RunSummary {
+    pub wall: Duration,
+    pub snapshot: Snapshot,
+}
+
+/// Metadata that travels with a frame from ingest to publish.
+#[derive(Debug, Clone)]
+struct Origin {
+    stream: String,
+    sequence: u64,
+    sensor_stamp_ns: Option<u64>,
+    ingested: Instant,
+    ingest_unix_ns: u64,
+    points_received: usize,
+}
+
+struct PreparedFrame {
+    origin: Origin,
+    prepared: Prepared,
+    prepare_ms: f32,
+    prepared_at: Instant,
+}
+
+struct EncodedFrame {
+    origin: Origin,
+    prepared: Prepared,
+    encoding: Encoding,
+    prepare_ms: f32,
+    queue_ms: f32,
+    encode_ms: f32,
+}
+
+enum Work {
+    Frame(PreparedFrame),
+    Rejected(Rejection),
+}
+
+enum Done {
+    Encoded(Box<EncodedFrame>),
+    Rejected(Rejection),
+}
+
+type Ticketed<T> = (u64, T);
+
+fn ms_since(start: Instant) -> f32 {
+    start.elapsed().as_secs_f32() * 1000.0
+}
+
+/// Runs the pipeline until every source has ended (replay) or `stop` is set (daemon), then drains.
+pub fn run(
+    config: &Config,
+    bundle: &Bundle,
+    session: Option<Session>,
+    stop: Arc<AtomicBool>,
+    stats: Arc<Stats>,
+    options: RunOptions,
+) -> Result<RunSummary, PipelineError> {
+    let started = Instant::now();
+    let queue = config.pipeline.queue;
+    let m = &config.model;
+
+    // Encoders first: a bundle or runtime problem fails before any source starts.
+    let mut encoders = Vec::new();
+    for _ in 0..m.workers {
+        encoders.push(Encoder::load(bundle, m.onnxruntime.as_deref(), m.threads)?);
+    }
+    let preparer = Arc::new(Preparer::new(
+        &config.prepare,
+        bundle.manifest.sizes.points,
+        bundle.manifest.units.model_units_per_metre as f32,
+    ));
+
+    // Sources.
+    let mut threads: Vec<(String, JoinHandle<()>)> = Vec::new();
+    let mut source_channels: Vec<(bool, Receiver<Ingest>)> = Vec::new();
+    let mut subscribers = Vec::new();
+    for source in &config.sources {
+        let live = source.is_live();
+        let (outlet, receiver) = Outlet::new(&source.stream, live, queue, stats.clone(), stop.clone());
+        source_channels.push((live, receiver));
+        stats.stream(&source.stream);
+        match source.kind {
+            SourceKind::Zenoh => {
+                let session = session.as_ref().ok_or_else(|| PipelineError::Subscribe {
+                    stream: source.stream.clone(),
+                    message: "no zenoh session".into(),
+                })?;
+                let subscriber =
+                    sources::zenoh::subscribe(session, source, outlet).map_err(|e| PipelineError::Subscribe {
+                        stream: source.stream.clone(),
+                        message: e.to_string(),
+                    })?;
+                log::info!("source '{}': zenoh subscription to {}", source.stream, source.key.as_deref().unwrap_or(""));
+                subscribers.push(subscriber);
+            }
+            SourceKind::Files | SourceKind::Mcap => {
+                let settings = source.clone();
+                let name = format!("source:{}", source.stream);
+                let handle = std::thread::Builder::new()
+                    .name(name.clone())
+                    .spawn(move || {
+                        let stream = settings.stream.clone();
+                        let result = match settings.kind {
+                            SourceKind::Files => sources::files::run(&settings, outlet).map_err(|e| e.to_string()),
+                            _ => sources::mcap::run(&settings, outlet).map_err(|e| e.to_string()),
+                        };
+                        match result {
+                            Ok(()) => log::info!("source '{stream}': finished"),
+                            Err(e) => log::error!("source '{stream}' stopped: {e}"),
+                        }
+                    })
+                    .map_err(|e| PipelineError::Thread(e.to_string()))?;
+                threads.push((name, handle));
+            }
+        }
+    }
+
+    let (prepare_tx, prepare_rx) = bounded::<Ticketed<Ingest>>(queue);
+    let (work_tx, work_rx) = bounded::<Ticketed<Work>>(queue);
+    let (batch_tx, batch_rx) = bounded::<Vec<Ticketed<PreparedFrame>>>(m.workers * 2);
+    let (done_tx, done_rx) = bounded::<Ticketed<Done>>(queue * 2);
+    let (publish_tx, publish_rx) = bounded::<(Output, Instant)>(queue);
+    let queues = Arc::new(Queues {
+        channels: vec![
+            ("prepare", Box::new({ let r = prepare_rx.clone(); move || r.len() }) as Box<dyn Fn() -> usize + Send + Sync>),
+            ("batch", Box::new({ let r = work_rx.clone(); move || r.len() })),
+            ("encode", Box::new({ let r = batch_rx.clone(); move || r.len() })),
+            ("track", Box::new({ let r = done_rx.clone(); move || r.len() })),
+            ("publish", Box::new({ let r = publish_rx.clone(); move || r.len() })),
+        ],
+    });
+
+    let spawn = |name: String, body: Box<dyn FnOnce() + Send>| {
+        std::thread::Builder::new()
+            .name(name.clone())
+            .spawn(body)
+            .map(|h| (name, h))
+            .map_err(|e| PipelineError::Thread(e.to_string()))
+    };
+
+    {
+        let stop = stop.clone();
+        threads.push(spawn("ingest".into(), Box::new(move || ingest(source_channels, prepare_tx, &stop)))?);
+    }
+    for worker in 0..config.pipeline.prepare_workers {
+        let (rx, tx, preparer, stats) = (prepare_rx.clone(), work_tx.clone(), preparer.clone(), stats.clone());
+        threads.push(spawn(format!("prepare:{worker}"), Box::new(move || prepare(rx, tx, &preparer, &stats)))?);
+    }
+    drop((prepare_rx, work_tx));
+    {
+        let (max_batch, max_wait) = (m.max_batch, Duration::from_secs_f64(m.max_wait_ms / 1000.0));
+        let (done_tx, stats) = (done_tx.clone(), stats.clone());
+        threads.push(spawn(
+            "batcher".into(),
+            Box::new(move || batcher(work_rx, batch_tx, done_tx, max_batch, max_wait, &stats)),
+        )?);
+    }
+    for (worker, encoder) in encoders.into_iter().enumerate() {
+        let (rx, tx, stats) = (batch_rx.clone(), done_tx.clone(), stats.clone());
+        threads.push(spawn(format!("encode:{worker}"), Box::new(move || encode(rx, tx, encoder, &stats)))?);
+    }
+    drop((batch_rx, done_tx));
+    {
+        let (config, stats) = (config.clone(), stats.clone());
+        threads.push(spawn("track".into(), Box::new(move || track(done_rx, publish_tx, &config, &stats)))?);
+    }
+    let mut publisher = Publisher::new(config, session.clone(), options.lossless_publish)?;
+
+    // Node-level zenoh presence: a liveliness token and the status queryable.
+    let mut presence = None;
+    if let Some(session) = &session {
+        let token = session
+            .liveliness()
+            .declare_token(config.liveliness_key())
+            .wait()
+            .map_err(|e| PipelineError::Publish(crate::publish::PublishError::Zenoh(e.to_string())))?;
+        let status = status_queryable(session, config, bundle, stats.clone(), queues.clone(), started)?;
+        presence = Some((token, status));
+    }
+
+    // The summary logger runs until the publisher is done.
+    let finished = Arc::new(AtomicBool::new(false));
+    let logger = {
+        let (finished, stats, seconds) = (finished.clone(), stats.clone(), config.pipeline.summary_seconds);
+        std::thread::spawn(move || summary_logger(&finished, &stats, seconds))
+    };
+
+    // Publish on this thread. Zenoh subscriptions end when stop is set.
+    let mut subscribers = Some(subscribers);
+    loop {
+        match publish_rx.recv_timeout(Duration::from_millis(50)) {
+            Ok((output, tracked_at)) => {
+                let stream = match &output {
+                    Output::State(s) => s.stream.clone(),
+                    Output::Rejected(r) => r.stream.clone(),
+                };
+                if let Err(e) = publisher.publish(&output) {
+                    log::error!("publishing on stream '{stream}': {e}");
+                }
+                stats.record("publish", ms_since(tracked_at));
+                if let Output::State(state) = &output {
+                    stats.record("end_to_end", state.latency.total_ms.max(0.0));
+                    stats.stream(&stream).add_published();
+                }
+            }
+            Err(crossbeam_channel::RecvTimeoutError::Timeout) => {}
+            Err(crossbeam_channel::RecvTimeoutError::Disconnected) => break,
+        }
+        if stop.load(Ordering::Relaxed) {
+            subscribers.take();
+        }
+    }
+    publisher.flush()?;
+    drop(presence);
+    finished.store(true, Ordering::Relaxed);
+    for (name, handle) in threads {
+        if handle.join().is_err() {
+            log::error!("thread {name} panicked");
+        }
+    }
+    let _ = logger.join();
+    Ok(RunSummary {
+        wall: started.elapsed(),
+        snapshot: stats.snapshot(),
+    })
+}
+
+struct Queues {
+    channels: Vec<(&'static str, Box<dyn Fn() -> usize + Send + Sync>)>,
+}
+
+impl Queues {
+    fn depths(&self) -> BTreeMap<&'static str, usize> {
+        self.channels.iter().map(|(name, len)| (*name, len())).collect()
+    }
+}
+
+/// Reads every source channel; gives each item its ticket. Ends when every source has ended, or
+/// after stop once the live sources' queues are empty.
+fn ingest(mut channels: Vec<(bool, Receiver<Ingest>)>, out: Sender<Ticketed<Ingest>>, stop: &AtomicBool) {
+    let mut ticket = 0u64;
+    while !channels.is_empty() {
+        if stop.load(Ordering::Relaxed) {
+            channels.retain(|(live, rx)| !(*live && rx.is_empty()));
+            if channels.is_empty() {
+                break;
+            }
+        }
+        let mut select = Select::new();
+        for (_, rx) in &channels {
+            select.recv(rx);
+        }
+        let Ok(operation) = select.select_timeout(Duration::from_millis(50)) else {
+            continue;
+        };
+        let index = operation.index();
+        match operation.recv(&channels[index].1) {
+            Ok(item) => {
+                if out.send((ticket, item)).is_err() {
+                    return;
+                }
+                ticket += 1;
+            }
+            Err(_) => {
+                channels.remove(index);
+            }
+        }
+    }
+}
+
+fn origin_of(frame: &crate::cloud::Frame) -> Origin {
+    Origin {
+        stream: frame.stream.clone(),
+        sequence: frame.sequence,
+        sensor_stamp_ns: frame.sensor_stamp_ns,
+        ingested: frame.ingested,
+        ingest_unix_ns: frame.ingest_unix_ns,
+        points_received: frame.cloud.len(),
+    }
+}
+
+fn prepare(rx: Receiver<Ticketed<Ingest>>, tx: Sender<Ticketed<Work>>, preparer: &Preparer, stats: &Stats) {
+    for (ticket, item) in rx {
+        let work = match item {
+            Ingest::Rejected(r) => Work::Rejected(r),
+            Ingest::Frame(frame) => {
+                let start = Instant::now();
+                let result = preparer.prepare(&frame);
+                let prepare_ms = ms_since(start);
+                stats.record("prepare", prepare_ms);
+                match result {
+                    Ok(prepared) => Work::Frame(PreparedFrame {
+                        origin: origin_of(&frame),
+                        prepared,
+                        prepare_ms,
+                        prepared_at: Instant::now(),
+                    }),
+                    Err(e) => Work::Rejected(Rejection {
+                        stream: frame.stream.clone(),
+                        sequence: frame.sequence,
+                        stage: "prepare",
+                        reason: format!("{} points received: {e}", frame.cloud.len()),
+                        sensor_stamp_ns: frame.sensor_stamp_ns,
+                        ingest_unix_ns: frame.ingest_unix_ns,
+                    }),
+                }
+            }
+        };
+        if tx.send((ticket, work)).is_err() {
+            return;
+        }
+    }
+}
+
+/// Groups prepared frames into batches of up to `max_batch`, waiting at most `max_wait` after the
+/// first frame of a batch for more.
+fn batcher(
+    rx: Receiver<Ticketed<Work>>,
+    batches: Sender<Vec<Ticketed<PreparedFrame>>>,
+    done: Sender<Ticketed<Done>>,
+    max_batch: usize,
+    max_wait: Duration,
+    stats: &Stats,
+) {
+    let mut batch: Vec<Ticketed<PreparedFrame>> = Vec::with_capacity(max_batch);
+    let mut deadline = None;
+    loop {
+        let received = match deadline {
+            None => rx.recv().map_err(|_| true),
+            Some(deadline) => rx.recv_deadline(deadline).map_err(|e| e.is_disconnected()),
+        };
+        match received {
+            Ok((ticket, Work::Rejected(r))) => {
+                if done.send((ticket, Done::Rejected(r))).is_err() {
+                    return;
+                }
+            }
+            Ok((ticket, Work::Frame(frame))) => {
+                if batch.is_empty() {
+                    deadline = Some(Instant::now() + max_wait);
+                }
+                batch.push((ticket, frame));
+            }
+            Err(disconnected) => {
+                if !batch.is_empty() {
+                    stats.record_batch(batch.len());
+                    if batches.send(std::mem::take(&mut batch)).is_err() {
+                        return;
+                    }
+                }
+                deadline = None;
+                if disconnected {
+                    return;
+                }
+                continue;
+            }
+        }
+        if batch.len() >= max_batch {
+            stats.record_batch(batch.len());
+            if batches.send(std::mem::take(&mut batch)).is_err() {
+                return;
+            }
+            deadline = None;
+        }
+    }
+}
+
+fn encode(rx: Receiver<Vec<Ticketed<PreparedFrame>>>, tx: Sender<Ticketed<Done>>, mut encoder: Encoder, stats: &Stats) {
+    for batch in rx {
+        let start = Instant::now();
+        let clouds: Vec<&[[f32; 3]]> = batch.iter().map(|(_, f)| f.prepared.points.as_slice()).collect();
+        let result = encoder.encode(&clouds);
+        let encode_ms = ms_since(start);
+        stats.record("encode", encode_ms);
+        match result {
+            Ok(encodings) => {
+                for ((ticket, frame), encoding) in batch.into_iter().zip(encodings) {
+                    let queue_ms = (start - frame.prepared_at).as_secs_f32() * 1000.0;
+                    stats.record("queue", queue_ms);
+                    let encoded = EncodedFrame {
+                        origin: frame.origin,
+                        prepared: frame.prepared,
+                        encoding,
+                        prepare_ms: frame.prepare_ms,
+                        queue_ms,
+                        encode_ms,
+                    };
+                    if tx.send((ticket, Done::Encoded(Box::new(encoded)))).is_err() {
+                        return;
+                    }
+                }
+            }
+            Err(e) => {
+                for (ticket, frame) in batch {
+                    let rejection = Rejection {
+                        stream: frame.origin.stream,
+                        sequence: frame.origin.sequence,
+                        stage: "encode",
+                        reason: e.to_string(),
+                        sensor_stamp_ns: frame.origin.sensor_stamp_ns,
+                        ingest_unix_ns: frame.origin.ingest_unix_ns,
+                    };
+                    if tx.send((ticket, Done::Rejected(rejection))).is_err() {
+                        return;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Per-stream tracking state.
+struct StreamTracker {
+    shape: ShapeFilter,
+    pose: PoseFilter,
+    last_stamp_ns: Option<u64>,
+    rejections_logged: u64,
+}
+
+fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant)>, config: &Config, stats: &Stats) {
+    let mut pending: BTreeMap<u64, Done> = BTreeMap::new();
+    let mut next = 0u64;
+    let mut trackers: HashMap<String, StreamTracker> = HashMap::new();
+    let settings = &config.track;
+    let node = config.node.name.clone();
+    let nominal_dt = 1.0 / settings.nominal_rate_hz;
+    for (ticket, done) in rx {
+        pending.insert(ticket, done);
+        while let Some(done) = pending.remove(&next) {
+            next += 1;
+            let start = Instant::now();
+            let stream = match &done {
+                Done::Encoded(f) => f.origin.stream.clone(),
+                Done::Rejected(r) => r.stream.clone(),
+            };
+            let tracker = trackers.entry(stream.clone()).or_insert_with(|| StreamTracker {
+                shape: ShapeFilter::new(settings),
+                pose: PoseFilter::new(settings),
+                last_stamp_ns: None,
+                rejections_logged: 0,
+            });
+            let output = match done {
+                Done::Rejected(r) => {
+                    stats.stream(&r.stream).add_rejected(r.stage);
+                    tracker.rejections_logged += 1;
+                    let n = tracker.rejections_logged;
+                    if n <= 10 || n % 100 == 0 {
+                        log::warn!("stream '{}' frame {} rejected at {} ({n} so far): {}", r.stream, r.sequence, r.stage, r.reason);
+                    }
+                    Output::Rejected(state::Rejected {
+                        schema: state::REJECTED_SCHEMA.into(),
+                        node: node.clone(),
+                        stream: r.stream,
+                        sequence: r.sequence,
+                        stage: r.stage.into(),
+                        reason: r.reason,
+                        stamps: state::Stamps {
+                            sensor_ns: r.sensor_stamp_ns,
+                            ingest_ns: r.ingest_unix_ns,
+                            publish_ns: unix_now_ns(),
+                        },
+                    })
+                }
+                Done::Encoded(frame) => {
+                    let dt = match (frame.origin.sensor_stamp_ns, tracker.last_stamp_ns) {
+                        (Some(now), Some(last)) if now > last && now - last < 1_000_000_000 => (now - last) as f32 * 1e-9,
+                        _ => nominal_dt,
+                    };
+                    if frame.origin.sensor_stamp_ns.is_some() {
+                        tracker.last_stamp_ns = frame.origin.sensor_stamp_ns;
+                    }
+                    Output::State(Box::new(state_of(&node, &frame, tracker, dt)))
+                }
+            };
+            stats.record("track", ms_since(start));
+            if tx.send((output, Instant::now())).is_err() {
+                return;
+            }
+        }
+    }
+    if !pending.is_empty() {
+        log::error!("track: {} items never reached their turn (ticket {next} missing)", pending.len());
+    }
+}
+
+fn variances(log_variance: &[f32]) -> Vec<f32> {
+    log_variance.iter().map(|lv| lv.clamp(-20.0, 20.0).exp()).collect()
+}
+
+fn state_of(node: &str, frame: &EncodedFrame, tracker: &mut StreamTracker, dt: f32) -> State {
+    let e = &frame.encoding;
+    let update = tracker.shape.update(&e.z_i_mean, &e.z_i_logvar);
+    if let Some(change) = update.change {
+        log::info!(
+            "stream '{}' frame {}: identity changed ({} -> {})",
+            frame.origin.stream,
+            frame.origin.sequence,
+            change.previous,
+            change.identity
+        );
+    }
+    let pose = tracker.pose.update(e.q, &e.z_e_mean, dt);
+    State {
+        schema: state::STATE_SCHEMA.into(),
+        node: node.to_string(),
+        stream: frame.origin.stream.clone(),
+        sequence: frame.origin.sequence,
+        stamps: state::Stamps {
+            sensor_ns: frame.origin.sensor_stamp_ns,
+            ingest_ns: frame.origin.ingest_unix_ns,
+            publish_ns: unix_now_ns(),
+        },
+        latency: state::StageLatency {
+            prepare_ms: frame.prepare_ms,
+            queue_ms: frame.queue_ms,
+            encode_ms: frame.encode_ms,
+            total_ms: ms_since(frame.origin.ingested),
+        },
+        points: state::Points {
+            received: frame.origin.points_received,
+            kept: frame.prepared.points_kept,
+        },
+        centre_m: frame.prepared.centre_m,
+        raw: state::Raw {
+            q: pose.q_raw,
+            yaw: pose.yaw_raw,
+            q_confidence: confidence_from_log_variance(&e.z_r_logvar),
+            z_e: e.z_e_mean.clone(),
+            z_e_var: variances(&e.z_e_logvar),
+            z_i: e.z_i_mean.clone(),
+            z_i_var: variances(&e.z_i_logvar),
+        },
+        filtered: state::Filtered {
+            q: pose.q,
+            yaw: pose.yaw,
+            z_e: pose.z_e,
+            z_e_confidence: confidence_from_log_variance(&e.z_e_logvar),
+        },
+        shape: state::Shape {
+            identity: tracker.shape.identity(),
+            z_i: tracker.shape.mean().to_vec(),
+            z_i_var: tracker.shape.variance(),
+            frames_fused: tracker.shape.frames_fused(),
+            inlier: update.inlier,
+            distance: update.distance,
+            confidence: tracker.shape.confidence(),
+        },
+        event: update.change.map(|c| state::IdentityEvent {
+            kind: "identity_change".into(),
+            previous: c.previous,
+            identity: c.identity,
+        }),
+    }
+}
+
+fn status_queryable(
+    session: &Session,
+    config: &Config,
+    bundle: &Bundle,
+    stats: Arc<Stats>,
+    queues: Arc<Queues>,
+    started: Instant,
+) -> Result<zenoh::query::Queryable<()>, PipelineError> {
+    let m = &bundle.manifest;
+    let fixed = serde_json::json!({
+        "schema": "gdvae.status/1",
+        "node": config.node.name,
+        "version": env!("CARGO_PKG_VERSION"),
+        "config": config,
+        "bundle": {
+            "folder": bundle.folder.display().to_string(),
+            "regime": m.model.regime,
+            "sizes": m.sizes,
+            "model_units_per_metre": m.units.model_units_per_metre,
+        },
+    });
+    session
+        .declare_queryable(config.status_key())
+        .callback(move |query| {
+            let mut reply = fixed.clone();
+            reply["uptime_s"] = serde_json::json!(started.elapsed().as_secs_f64());
+            reply["counters"] = serde_json::to_value(stats.snapshot()).unwrap_or_default();
+            reply["queues"] = serde_json::to_value(queues.depths()).unwrap_or_default();
+            let payload = serde_json::to_vec(&reply).unwrap_or_default();
+            if let Err(e) = query
+                .reply(query.key_expr().clone(), payload)
+                .encoding(zenoh::bytes::Encoding::APPLICATION_JSON)
+                .wait()
+            {
+                log::warn!("status reply failed: {e}");
+            }
+        })
+        .wait()
+        .map_err(|e| PipelineError::Publish(crate::publish::PublishError::Zenoh(e.to_string())))
+}
+
+fn summary_logger(finished: &AtomicBool, stats: &Stats, seconds: f64) {
+    if seconds <= 0.0 {
+        return;
+    }
+    let mut last = Instant::now();
+    while !finished.load(Ordering::Relaxed) {
+        std::thread::sleep(Duration::from_millis(100));
+        if last.elapsed().as_secs_f64() < seconds {
+            continue;
+        }
+        last = Instant::now();
+        let s = stats.snapshot();
+        let e2e = s.stages.get("end_to_end");
+        let streams: Vec<String> = s
+            .streams
+            .iter()
+            .map(|(name, c)| {
+                let rejected: u64 = c.rejected.values().sum();
+                format!("{name}: {} in, {} out, {} dropped, {rejected} rejected", c.received, c.published, c.dropped)
+            })
+            .collect();
+        log::info!(
+            "{} | latency p50 {:.1} ms, p99 {:.1} ms | mean batch {:.1}",
+            streams.join("; "),
+            e2e.map(|l| l.p50_ms).unwrap_or(0.0),
+            e2e.map(|l| l.p99_ms).unwrap_or(0.0),
+            s.mean_batch
+        );
+    }
+}

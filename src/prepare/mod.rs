@@ -1,0 +1,98 @@
+//! Prepare: from a sensor's points to the model's input (N_p points in model units, centred).
+//!
+//! In order: unit conversion to metres, the sensor-to-gravity transform (or levelling on a
+//! RANSAC ground plane), region-of-interest crop, ground removal, outlier removal, then
+//! centring on the bounding-box centre, scaling by the bundle's model units per metre and
+//! subsampling to N_p. Every step is deterministic for the configured seed and the frame's
+//! sequence number. A frame that ends with too few points is rejected with the reason.
+
+mod filters;
+mod sampling;
+
+pub use filters::{crop, fit_ground, levelling, remove_outliers, remove_plane, transform, Plane};
+pub use sampling::{
+    centre_and_scale, farthest_point_sampling, random_sampling, subsample, voxel_sampling, PrepareError, Sampling,
+};
+
+use nalgebra::{Matrix3, Vector3};
+
+use crate::cloud::Frame;
+use crate::config::PrepareSettings;
+
+/// A frame ready for the encoder.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    /// Exactly N_p points, centred, in model units.
+    pub points: Vec<[f32; 3]>,
+    /// The centre that was subtracted (metres, gravity frame).
+    pub centre_m: [f32; 3],
+    /// Points after filtering (before subsampling or padding).
+    pub points_kept: usize,
+}
+
+/// Prepares frames for one bundle; immutable and shared by the prepare workers.
+#[derive(Debug, Clone)]
+pub struct Preparer {
+    settings: PrepareSettings,
+    rotation: Matrix3<f32>,
+    translation: Vector3<f32>,
+    points: usize,
+    model_units_per_metre: f32,
+}
+
+impl Preparer {
+    pub fn new(settings: &PrepareSettings, points: usize, model_units_per_metre: f32) -> Self {
+        let r = settings.sensor_to_gravity_rotation;
+        Self {
+            settings: settings.clone(),
+            rotation: Matrix3::from_fn(|i, j| r[i][j]),
+            translation: Vector3::from(settings.sensor_to_gravity_translation),
+            points,
+            model_units_per_metre,
+        }
+    }
+
+    pub fn prepare(&self, frame: &Frame) -> Result<Prepared, PrepareError> {
+        let s = &self.settings;
+        let seed = s.seed ^ frame.sequence.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        let to_metres = frame.unit.to_metres();
+        let mut points: Vec<[f32; 3]> = frame.cloud.points.iter().map(|p| p.map(|c| c * to_metres)).collect();
+        transform(&mut points, &self.rotation, &self.translation);
+        let ground = if s.auto_ground || s.remove_ground {
+            let plane = fit_ground(&points, s.ground_tolerance_m, s.ransac_iterations, seed);
+            if plane.is_none() && s.auto_ground {
+                return Err(PrepareError::NoGround);
+            }
+            plane
+        } else {
+            None
+        };
+        let ground = match (ground, s.auto_ground) {
+            (Some(plane), true) => {
+                let (rotation, translation) = levelling(&plane);
+                transform(&mut points, &rotation, &translation);
+                Some(Plane {
+                    normal: Vector3::z(),
+                    offset: 0.0,
+                    inliers: plane.inliers,
+                })
+            }
+            (plane, _) => plane,
+        };
+        if let Some(bounds) = &s.crop {
+            crop(&mut points, bounds);
+        }
+        if let (true, Some(plane)) = (s.remove_ground, ground) {
+            remove_plane(&mut points, &plane, s.ground_tolerance_m);
+        }
+        remove_outliers(&mut points, &s.outliers);
+        let points_kept = points.len();
+        let mut chosen = subsample(&points, self.points, s.min_points, s.sampling, s.voxel_m, seed)?;
+        let centre_m = centre_and_scale(&mut chosen, self.model_units_per_metre);
+        Ok(Prepared {
+            points: chosen,
+            centre_m,
+            points_kept,
+        })
+    }
+}

@@ -1,0 +1,136 @@
+//! The published messages, schema `gdvae.state/1` (documented field by field in README.md).
+//!
+//! One `State` per encoded frame on `<prefix>/<node>/<stream>/state`; one `Rejected` per frame that
+//! was not encoded on `<prefix>/<node>/<stream>/rejected`; one `Event` per identity change on
+//! `<prefix>/<node>/<stream>/event`. Adding a field is compatible; renaming or removing one bumps
+//! the version in `schema`.
+
+use serde::{Deserialize, Serialize};
+
+pub const STATE_SCHEMA: &str = "gdvae.state/1";
+pub const REJECTED_SCHEMA: &str = "gdvae.rejected/1";
+pub const EVENT_SCHEMA: &str = "gdvae.event/1";
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Stamps {
+    /// The sensor's stamp (ns since the Unix epoch), when the input carried one.
+    pub sensor_ns: Option<u64>,
+    /// When the node received the frame (ns since the Unix epoch).
+    pub ingest_ns: u64,
+    /// When the node published this message (ns since the Unix epoch).
+    pub publish_ns: u64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageLatency {
+    pub prepare_ms: f32,
+    /// Waiting for a batch and an encoder.
+    pub queue_ms: f32,
+    pub encode_ms: f32,
+    /// Ingest to publish.
+    pub total_ms: f32,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Points {
+    /// Points in the input frame (finite ones).
+    pub received: usize,
+    /// Points left after crop, ground and outlier removal (before subsampling to N_p).
+    pub kept: usize,
+}
+
+/// What the encoder said about this frame alone.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Raw {
+    /// Canonical rotation [w, x, y, z] (sign made continuous with the previous frame).
+    pub q: [f32; 4],
+    /// Yaw of q about the up axis, radians, unwrapped over turns.
+    pub yaw: f32,
+    /// 1 / (1 + mean variance of z_R): the rotation's confidence, in (0, 1].
+    pub q_confidence: f32,
+    pub z_e: Vec<f32>,
+    pub z_e_var: Vec<f32>,
+    pub z_i: Vec<f32>,
+    pub z_i_var: Vec<f32>,
+}
+
+/// Pose smoothed over time.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Filtered {
+    pub q: [f32; 4],
+    pub yaw: f32,
+    pub z_e: Vec<f32>,
+    /// 1 / (1 + mean variance of z_E), in (0, 1].
+    pub z_e_confidence: f32,
+}
+
+/// The shape estimate: z_I fused over the frames of the current identity.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Shape {
+    /// Increments at each detected identity change, from 0.
+    pub identity: u64,
+    pub z_i: Vec<f32>,
+    pub z_i_var: Vec<f32>,
+    pub frames_fused: u64,
+    /// This frame was fused (false: an outlier, held out).
+    pub inlier: bool,
+    /// This frame's mean squared standardized distance to the estimate before it.
+    pub distance: f32,
+    /// Fraction of recent frames (up to 20, since the last change) that were fused.
+    pub confidence: f32,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct IdentityEvent {
+    pub kind: String,
+    pub previous: u64,
+    pub identity: u64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct State {
+    pub schema: String,
+    pub node: String,
+    pub stream: String,
+    /// The input frame's sequence number in its stream (0, 1, ...; rejections use numbers too).
+    pub sequence: u64,
+    pub stamps: Stamps,
+    pub latency: StageLatency,
+    pub points: Points,
+    /// Centre subtracted before scaling (metres, gravity frame): where the object is.
+    pub centre_m: [f32; 3],
+    pub raw: Raw,
+    pub filtered: Filtered,
+    pub shape: Shape,
+    /// Set on the frame that completed an identity change.
+    pub event: Option<IdentityEvent>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Rejected {
+    pub schema: String,
+    pub node: String,
+    pub stream: String,
+    pub sequence: u64,
+    /// Where it was rejected: source, prepare or encode.
+    pub stage: String,
+    pub reason: String,
+    pub stamps: Stamps,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Event {
+    pub schema: String,
+    pub node: String,
+    pub stream: String,
+    pub sequence: u64,
+    pub stamps: Stamps,
+    pub event: IdentityEvent,
+}
+
+/// What the tracker hands the publisher.
+#[derive(Debug, Clone)]
+pub enum Output {
+    State(Box<State>),
+    Rejected(Rejected),
+}
