@@ -98,7 +98,7 @@ impl Default for PipelineSettings {
     fn default() -> Self {
         Self {
             queue: 16,
-            prepare_workers: 1,
+            prepare_workers: 2,
             summary_seconds: 5.0,
         }
     }
@@ -212,7 +212,7 @@ pub struct TrackSettings {
 impl Default for TrackSettings {
     fn default() -> Self {
         Self {
-            shape_gate: 4.0,
+            shape_gate: 2.5,
             switch_frames: 5,
             min_shape_variance: 1e-4,
             smoothing: Smoothing::OneEuro,
@@ -389,6 +389,11 @@ impl Config {
         resolve(&mut self.model.bundle);
         if let Some(p) = self.model.onnxruntime.as_mut() {
             resolve(p);
+        }
+        if let Some(jsonl) = self.publish.jsonl.as_mut().filter(|j| *j != "-") {
+            let mut path = PathBuf::from(&*jsonl);
+            resolve(&mut path);
+            *jsonl = path.display().to_string();
         }
         for source in &mut self.sources {
             if let Some(p) = source.path.as_mut() {

@@ -53,7 +53,10 @@ pub struct RunOptions {
 
 #[derive(Debug, Clone)]
 pub struct RunSummary {
+    /// From the start of `run` (loading encoders included) to the last publish.
     pub wall: Duration,
+    /// From the first frame's ingest to the last publish: what throughput is measured over.
+    pub busy: Duration,
     pub snapshot: Snapshot,
 }
 
@@ -192,9 +195,11 @@ pub fn run(
             .map_err(|e| PipelineError::Thread(e.to_string()))
     };
 
+    let first_ingest = Arc::new(std::sync::OnceLock::new());
     {
         let stop = stop.clone();
-        threads.push(spawn("ingest".into(), Box::new(move || ingest(source_channels, prepare_tx, &stop)))?);
+        let first = first_ingest.clone();
+        threads.push(spawn("ingest".into(), Box::new(move || ingest(source_channels, prepare_tx, &stop, &first)))?);
     }
     for worker in 0..config.pipeline.prepare_workers {
         let (rx, tx, preparer, stats) = (prepare_rx.clone(), work_tx.clone(), preparer.clone(), stats.clone());
@@ -273,8 +278,10 @@ pub fn run(
         }
     }
     let _ = logger.join();
+    let last_publish = Instant::now();
     Ok(RunSummary {
         wall: started.elapsed(),
+        busy: first_ingest.get().map(|f| last_publish - *f).unwrap_or_default(),
         snapshot: stats.snapshot(),
     })
 }
@@ -291,7 +298,12 @@ impl Queues {
 
 /// Reads every source channel; gives each item its ticket. Ends when every source has ended, or
 /// after stop once the live sources' queues are empty.
-fn ingest(mut channels: Vec<(bool, Receiver<Ingest>)>, out: Sender<Ticketed<Ingest>>, stop: &AtomicBool) {
+fn ingest(
+    mut channels: Vec<(bool, Receiver<Ingest>)>,
+    out: Sender<Ticketed<Ingest>>,
+    stop: &AtomicBool,
+    first: &std::sync::OnceLock<Instant>,
+) {
     let mut ticket = 0u64;
     while !channels.is_empty() {
         if stop.load(Ordering::Relaxed) {
@@ -310,6 +322,7 @@ fn ingest(mut channels: Vec<(bool, Receiver<Ingest>)>, out: Sender<Ticketed<Inge
         let index = operation.index();
         match operation.recv(&channels[index].1) {
             Ok(item) => {
+                first.get_or_init(Instant::now);
                 if out.send((ticket, item)).is_err() {
                     return;
                 }

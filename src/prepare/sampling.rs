@@ -32,24 +32,23 @@ pub fn farthest_point_sampling(points: &[[f32; 3]], count: usize, seed: u64) -> 
         return points.to_vec();
     }
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    // Coordinates in separate arrays, and the distance update apart from the arg-max, so that
+    // both loops vectorize.
+    let xs: Vec<f32> = points.iter().map(|p| p[0]).collect();
+    let ys: Vec<f32> = points.iter().map(|p| p[1]).collect();
+    let zs: Vec<f32> = points.iter().map(|p| p[2]).collect();
     let mut nearest = vec![f32::INFINITY; points.len()];
     let mut chosen = Vec::with_capacity(count);
     let mut current = rng.random_range(0..points.len());
     for _ in 0..count {
         let c = points[current];
         chosen.push(c);
-        let mut farthest = (0usize, -1.0f32);
-        for (index, p) in points.iter().enumerate() {
-            let d = (p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2);
-            let n = &mut nearest[index];
-            if d < *n {
-                *n = d;
-            }
-            if *n > farthest.1 {
-                farthest = (index, *n);
-            }
+        for (((n, x), y), z) in nearest.iter_mut().zip(&xs).zip(&ys).zip(&zs) {
+            let d = (x - c[0]) * (x - c[0]) + (y - c[1]) * (y - c[1]) + (z - c[2]) * (z - c[2]);
+            *n = n.min(d);
         }
-        current = farthest.0;
+        let largest = nearest.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        current = nearest.iter().position(|n| *n == largest).unwrap_or(0);
     }
     chosen
 }

@@ -109,3 +109,22 @@ fn bad_files_are_clear_errors_naming_the_file() {
         );
     }
 }
+
+#[test]
+fn pcd_written_by_pypcd4_in_all_three_encodings() {
+    let fixtures = crate::helpers::repo().join("tests/fixtures");
+    let expected: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fixtures.join("expected_pcd.json")).unwrap()).unwrap();
+    for encoding in ["ascii", "binary", "binary_compressed"] {
+        let path = fixtures.join(format!("pypcd4_{encoding}.pcd"));
+        let read = read_cloud(&path, &FileOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(read.cloud.len() as u64, expected["points"].as_u64().unwrap(), "{encoding}");
+        assert_eq!(read.dropped_non_finite as u64, expected["dropped_non_finite"].as_u64().unwrap());
+        for axis in 0..3 {
+            let sum: f64 = read.cloud.points.iter().map(|p| p[axis] as f64).sum();
+            let want = expected["sum"][axis].as_f64().unwrap();
+            assert!((sum - want).abs() < 1e-3, "{encoding} axis {axis}: {sum} vs {want}");
+            assert_eq!(read.cloud.points[0][axis], expected["first"][axis].as_f64().unwrap() as f32);
+        }
+    }
+}

@@ -1,0 +1,84 @@
+//! The shipped configs parse and validate; typos and bad values are refused with the key named.
+
+use gdvae_node::config::{Config, SourceKind};
+
+use crate::helpers::repo;
+
+#[test]
+fn every_shipped_config_parses_and_validates() {
+    let mut checked = 0;
+    for entry in std::fs::read_dir(repo().join("config")).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            let config = Config::load(&path).unwrap_or_else(|e| panic!("{e}"));
+            assert!(!config.sources.is_empty(), "{}: no sources", path.display());
+            checked += 1;
+        }
+    }
+    assert!(checked >= 4, "default + replay, zenoh and DepthAI examples");
+}
+
+#[test]
+fn the_default_config_replays_the_sample_with_the_shipped_bundle() {
+    let config = Config::load(&repo().join("config/default.toml")).unwrap();
+    assert!(config.model.bundle.join("manifest.json").is_file());
+    let source = &config.sources[0];
+    assert_eq!(source.kind, SourceKind::Mcap);
+    assert!(source.path.as_ref().unwrap().is_file(), "relative paths resolve against the config's folder");
+    assert!(config.publish.zenoh && config.zenoh.mode == "peer" && config.zenoh.connect.is_empty());
+}
+
+#[test]
+fn an_empty_config_is_the_documented_defaults() {
+    let empty = Config::parse("").unwrap();
+    empty.validate().unwrap();
+    let documented = Config::load(&repo().join("config/default.toml")).unwrap();
+    // The file documents the defaults; where it deliberately differs (the sample's camera pose,
+    // crop and source, and a path relative to config/) it says so in its comments.
+    assert_eq!(empty.track.shape_gate, documented.track.shape_gate);
+    assert_eq!(empty.track.switch_frames, documented.track.switch_frames);
+    assert_eq!(empty.model.max_batch, documented.model.max_batch);
+    assert_eq!(empty.pipeline.queue, documented.pipeline.queue);
+    assert_eq!(empty.prepare.min_points, documented.prepare.min_points);
+    assert_eq!(empty.prepare.outliers.method, documented.prepare.outliers.method);
+}
+
+#[test]
+fn unknown_keys_are_refused() {
+    let error = Config::parse("[model]\nmax_batchh = 4\n").unwrap_err();
+    assert!(error.contains("max_batchh"), "{error}");
+    let error = Config::parse("[[source]]\nstream = \"a\"\nkind = \"files\"\npaht = \"x\"\n").unwrap_err();
+    assert!(error.contains("paht"), "{error}");
+}
+
+#[test]
+fn bad_values_are_refused_with_the_key_named() {
+    let cases = [
+        ("[model]\nmax_batch = 0\n", "max_batch"),
+        ("[prepare]\ncrop = [1.0, 0.0, 0.0, 0.0, 1.0, 1.0]\n", "crop"),
+        (
+            "[prepare]\nsensor_to_gravity_rotation = [[2.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]\n",
+            "sensor_to_gravity_rotation",
+        ),
+        ("[zenoh]\nmode = \"router\"\n", "zenoh.mode"),
+        ("[zenoh]\nmode = \"client\"\n", "connect"),
+        ("[[source]]\nstream = \"a\"\nkind = \"mcap\"\n", "path"),
+        ("[[source]]\nstream = \"a/b*\"\nkind = \"zenoh\"\nkey = \"k\"\n", "stream"),
+        (
+            "[[source]]\nstream = \"a\"\nkind = \"zenoh\"\nkey = \"k\"\n[[source]]\nstream = \"a\"\nkind = \"zenoh\"\nkey = \"j\"\n",
+            "two sources",
+        ),
+        ("[node]\nname = \"\"\n", "node.name"),
+    ];
+    for (text, expected) in cases {
+        let config = Config::parse(text).unwrap();
+        let error = config.validate().unwrap_err();
+        assert!(error.contains(expected), "{text:?}: '{error}' should mention {expected}");
+    }
+}
+
+#[test]
+fn a_missing_config_file_is_named() {
+    let error = Config::load(std::path::Path::new("/nonexistent/node.toml")).unwrap_err();
+    assert!(error.to_string().contains("/nonexistent/node.toml"));
+}

@@ -1,0 +1,232 @@
+//! End to end through real parts: the shipped bundle in ONNX Runtime, the sample recording, and
+//! zenoh sessions on loopback. Every wait has a timeout.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use crossbeam_channel::{unbounded, Receiver};
+use gdvae_node::bundle::Bundle;
+use gdvae_node::config::{Config, SourceSettings};
+use gdvae_node::pipeline::{self, RunOptions, RunSummary};
+use gdvae_node::state::{Rejected, State, STATE_SCHEMA};
+use gdvae_node::stats::Stats;
+use zenoh::bytes::Encoding;
+use zenoh::Wait;
+
+use crate::helpers::*;
+
+fn source(toml_text: &str) -> SourceSettings {
+    toml::from_str(toml_text).unwrap()
+}
+
+/// Subscribes to everything under `key` and forwards (key, payload) pairs.
+fn collect(session: &zenoh::Session, key: &str) -> (zenoh::pubsub::Subscriber<()>, Receiver<(String, Vec<u8>)>) {
+    let (tx, rx) = unbounded();
+    let subscriber = session
+        .declare_subscriber(key.to_string())
+        .callback(move |sample| {
+            let _ = tx.send((sample.key_expr().to_string(), sample.payload().to_bytes().to_vec()));
+        })
+        .wait()
+        .unwrap();
+    (subscriber, rx)
+}
+
+/// Runs the pipeline on a thread; returns its stop flag, stats and handle.
+fn start(
+    config: Config,
+    session: zenoh::Session,
+) -> (Arc<AtomicBool>, Arc<Stats>, std::thread::JoinHandle<RunSummary>) {
+    let stop = Arc::new(AtomicBool::new(false));
+    let stats = Arc::new(Stats::default());
+    let (s, st) = (stop.clone(), stats.clone());
+    let handle = std::thread::spawn(move || {
+        let bundle = Bundle::load(&config.model.bundle).unwrap();
+        pipeline::run(&config, &bundle, Some(session), s, st, RunOptions { lossless_publish: true }).unwrap()
+    });
+    (stop, stats, handle)
+}
+
+fn join_within(handle: std::thread::JoinHandle<RunSummary>, timeout: Duration) -> RunSummary {
+    assert!(wait_until(timeout, || handle.is_finished()), "the pipeline did not finish within {timeout:?}");
+    handle.join().unwrap()
+}
+
+#[test]
+fn replaying_the_sample_publishes_every_frame_in_order_on_zenoh() {
+    let endpoint = free_endpoint();
+    let mut config = test_config("e2e", &endpoint);
+    config.model.threads = 2;
+    config.prepare = Config::load(&repo().join("config/replay.toml")).unwrap().prepare;
+    config.sources = vec![source(&format!(
+        "stream = \"walk\"\nkind = \"mcap\"\npath = {:?}\nspeed = 0.0",
+        sample_recording().display().to_string()
+    ))];
+    let node = gdvae_node::publish::open_session(&config).unwrap();
+    let client = client_session(&endpoint);
+    let (_subscriber, received) = collect(&client, "gdvae/e2e/**");
+    wait_for_subscriber(&node, "gdvae/e2e/walk/state");
+
+    let (_, _, handle) = start(config, node);
+    let summary = join_within(handle, Duration::from_secs(120));
+    let counters = &summary.snapshot.streams["walk"];
+    assert_eq!((counters.received, counters.published, counters.dropped), (150, 150, 0));
+
+    let mut states = Vec::new();
+    assert!(
+        wait_until(Duration::from_secs(20), || {
+            states.extend(received.try_iter().filter(|(k, _)| k.ends_with("/state")));
+            states.len() >= 150
+        }),
+        "received {} of 150 states",
+        states.len()
+    );
+    let sizes = Bundle::load(shipped_bundle()).unwrap().manifest.sizes;
+    for (index, (key, payload)) in states.iter().enumerate() {
+        assert_eq!(key, "gdvae/e2e/walk/state");
+        let state: State = serde_json::from_slice(payload).unwrap();
+        assert_eq!(state.schema, STATE_SCHEMA);
+        assert_eq!(state.sequence, index as u64, "in order, none missing");
+        assert_eq!((state.raw.z_i.len(), state.shape.z_i.len(), state.raw.z_e.len()), (sizes.z_i, sizes.z_i, sizes.z_e));
+        assert!(state.stamps.sensor_ns.is_some() && state.stamps.publish_ns >= state.stamps.ingest_ns);
+        assert!(state.points.kept > 500 && state.points.kept < state.points.received, "crop keeps the subject");
+        let norm: f32 = state.filtered.q.iter().map(|c| c * c).sum::<f32>().sqrt();
+        assert!((norm - 1.0).abs() < 1e-3);
+    }
+}
+
+#[test]
+fn stop_drains_the_frames_in_flight_and_status_answers_while_running() {
+    let endpoint = free_endpoint();
+    let mut config = test_config("drain", &endpoint);
+    config.sources = vec![source(&format!(
+        "stream = \"meshes\"\nkind = \"files\"\npath = {:?}\nrepeat = true",
+        repo().join("sim/samples/meshes").display().to_string()
+    ))];
+    let node = gdvae_node::publish::open_session(&config).unwrap();
+    let client = client_session(&endpoint);
+    let (stop, stats, handle) = start(config, node);
+    assert!(
+        wait_until(Duration::from_secs(60), || stats.snapshot().streams.get("meshes").is_some_and(|s| s.published >= 10)),
+        "states are published"
+    );
+
+    let mut status = None;
+    assert!(wait_until(Duration::from_secs(20), || {
+        let replies = client.get("gdvae/drain/status").timeout(Duration::from_secs(2)).wait().unwrap();
+        if let Ok(reply) = replies.recv() {
+            if let Ok(sample) = reply.result() {
+                status = serde_json::from_slice::<serde_json::Value>(&sample.payload().to_bytes()).ok();
+            }
+        }
+        status.is_some()
+    }));
+    let status = status.unwrap();
+    assert_eq!(status["schema"], "gdvae.status/1");
+    assert!(status["counters"]["streams"]["meshes"]["published"].as_u64().unwrap() >= 10);
+    assert!(status["queues"]["prepare"].is_u64() && status["config"]["model"]["max_batch"] == 8);
+
+    stop.store(true, Ordering::SeqCst);
+    let summary = join_within(handle, Duration::from_secs(30));
+    let counters = &summary.snapshot.streams["meshes"];
+    let rejected: u64 = counters.rejected.values().sum();
+    assert_eq!(counters.dropped, 0);
+    assert_eq!(counters.received, counters.published + rejected, "every frame taken in was finished: {counters:?}");
+}
+
+#[test]
+fn zenoh_sources_decode_cdr_and_depthai_and_count_what_they_reject() {
+    let endpoint = free_endpoint();
+    let mut config = test_config("live", &endpoint);
+    config.prepare = Config::load(&repo().join("config/replay.toml")).unwrap().prepare;
+    config.sources = vec![
+        source("stream = \"ros\"\nkind = \"zenoh\"\nkey = \"test/ros/points\""),
+        source("stream = \"oak\"\nkind = \"zenoh\"\nkey = \"test/oak/points\""),
+    ];
+    // A real PointCloud2 message: the sample recording's first frame.
+    let bytes = std::fs::read(sample_recording()).unwrap();
+    let cdr = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .map(Result::unwrap)
+        .find(|m| m.channel.topic == "/camera/depth/points")
+        .unwrap()
+        .data
+        .to_vec();
+    let points = gdvae_node::sources::ros2::decode_point_cloud2(&cdr, 1 << 22).unwrap().points;
+    let millimetres: Vec<u8> = points.iter().flat_map(|p| p.map(|c| c * 1000.0)).flat_map(f32::to_le_bytes).collect();
+
+    let node = gdvae_node::publish::open_session(&config).unwrap();
+    let client = client_session(&endpoint);
+    let (_subscriber, received) = collect(&client, "gdvae/live/**");
+    wait_for_subscriber(&node, "gdvae/live/ros/state");
+    let (stop, stats, handle) = start(config, node.clone());
+    let ros = client.declare_publisher("test/ros/points").wait().unwrap();
+    let oak = client.declare_publisher("test/oak/points").wait().unwrap();
+    // Subscriptions are declared by the pipeline: wait until they reach the client.
+    assert!(wait_until(Duration::from_secs(20), || ros.matching_status().wait().unwrap().matching()
+        && oak.matching_status().wait().unwrap().matching()));
+
+    let cdr_encoding = Encoding::APPLICATION_CDR.with_schema("sensor_msgs/msg/PointCloud2");
+    ros.put(cdr.clone()).encoding(cdr_encoding.clone()).wait().unwrap();
+    oak.put(millimetres.clone())
+        .encoding(Encoding::APPLICATION_OCTET_STREAM.with_schema(gdvae_node::sources::zenoh::DEPTHAI_SCHEMA))
+        .attachment(br#"{"stamp_nanos": 42}"#.to_vec())
+        .wait()
+        .unwrap();
+    ros.put(b"hello".to_vec()).encoding(Encoding::TEXT_PLAIN).wait().unwrap();
+    ros.put(cdr[..cdr.len() / 2].to_vec()).encoding(cdr_encoding).wait().unwrap();
+    oak.put(millimetres[..millimetres.len() - 5].to_vec())
+        .encoding(Encoding::APPLICATION_OCTET_STREAM.with_schema(gdvae_node::sources::zenoh::DEPTHAI_SCHEMA))
+        .wait()
+        .unwrap();
+
+    let done = |s: &gdvae_node::stats::Snapshot, name: &str, n: u64| {
+        s.streams.get(name).is_some_and(|c| c.published + c.rejected.values().sum::<u64>() >= n)
+    };
+    assert!(
+        wait_until(Duration::from_secs(30), || {
+            let s = stats.snapshot();
+            done(&s, "ros", 3) && done(&s, "oak", 2)
+        }),
+        "{:?}",
+        stats.snapshot().streams
+    );
+    stop.store(true, Ordering::SeqCst);
+    let summary = join_within(handle, Duration::from_secs(30));
+    let streams = &summary.snapshot.streams;
+    assert_eq!(streams["ros"].published, 1);
+    assert_eq!(streams["ros"].rejected, BTreeMap::from([("source".to_string(), 2)]));
+    assert_eq!(streams["oak"].published, 1);
+    assert_eq!(streams["oak"].rejected, BTreeMap::from([("source".to_string(), 1)]));
+
+    let mut messages = Vec::new();
+    assert!(wait_until(Duration::from_secs(10), || {
+        messages.extend(received.try_iter());
+        messages.len() >= 5
+    }));
+    let oak_state: State = messages
+        .iter()
+        .find(|(k, _)| k == "gdvae/live/oak/state")
+        .map(|(_, p)| serde_json::from_slice(p).unwrap())
+        .unwrap();
+    let ros_state: State = messages
+        .iter()
+        .find(|(k, _)| k == "gdvae/live/ros/state")
+        .map(|(_, p)| serde_json::from_slice(p).unwrap())
+        .unwrap();
+    assert_eq!(oak_state.stamps.sensor_ns, Some(42));
+    // Millimetres are converted: the same frame gives the same prepared cloud and codes.
+    assert_eq!(oak_state.points.kept, ros_state.points.kept);
+    for (a, b) in oak_state.raw.z_i.iter().zip(&ros_state.raw.z_i) {
+        assert!((a - b).abs() < 1e-3, "{a} vs {b}");
+    }
+    let reasons: Vec<Rejected> = messages
+        .iter()
+        .filter(|(k, _)| k.ends_with("/rejected"))
+        .map(|(_, p)| serde_json::from_slice(p).unwrap())
+        .collect();
+    assert!(reasons.iter().any(|r| r.stream == "ros" && r.reason.contains("unknown encoding")), "{reasons:?}");
+    assert!(reasons.iter().any(|r| r.stream == "oak" && r.reason.contains("triplets")), "{reasons:?}");
+}
