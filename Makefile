@@ -1,9 +1,17 @@
 # The project's entry points. `make test` is what CI runs (.ci/run).
-.PHONY: test test-rust test-python sim venv samples
+.PHONY: demo test test-rust test-python sim node venv onnxruntime samples
 
 VENV := .venv
 PYTHON := $(VENV)/bin/python
 REQUIREMENTS := sim/requirements.txt models/pyproject.toml
+
+# The node's demo: the shipped bundle on the shipped sample recording (30 Hz, original timing),
+# publishing on an embedded zenoh peer, with a line per state on stdout. Needs only ONNX Runtime.
+demo: onnxruntime node
+	./target/release/gdvae-node run --config config/default.toml --live-summary
+
+node:
+	cargo build --release -p gdvae-node
 
 # Build everything and run every test: Rust, then the Python checks against the built binaries.
 # The venv comes first: the node's tests load ONNX Runtime from its onnxruntime wheel.
@@ -19,6 +27,14 @@ test-python: venv sim
 # Build the simulator CLI (target/release/sim).
 sim:
 	cargo build --release -p gdvae-sim
+
+# ONNX Runtime for the node: the onnxruntime wheel's libonnxruntime.so, in .venv (never downloaded
+# at build or run time; the node finds it there, or at ORT_DYLIB_PATH).
+onnxruntime: $(VENV)/.onnxruntime
+$(VENV)/.onnxruntime:
+	test -x $(PYTHON) || python3 -m venv $(VENV)
+	$(PYTHON) -m pip install --quiet onnxruntime==1.31.1
+	touch $@
 
 # The project's Python environment, rebuilt when a requirements file changes.
 venv: $(VENV)/.installed

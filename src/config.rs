@@ -64,6 +64,8 @@ pub struct ModelSettings {
     pub workers: usize,
     /// Intra-op threads per session.
     pub threads: usize,
+    /// Let idle ONNX Runtime threads spin (only worth it on cores nothing else uses).
+    pub spin: bool,
     /// Most frames encoded in one call (frames of all streams are batched together).
     pub max_batch: usize,
     /// How long the batcher waits for a batch to fill before running a smaller one.
@@ -77,6 +79,7 @@ impl Default for ModelSettings {
             onnxruntime: None,
             workers: 1,
             threads: 2,
+            spin: false,
             max_batch: 8,
             max_wait_ms: 2.0,
         }

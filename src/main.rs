@@ -245,7 +245,7 @@ fn run(command: Command) -> Result<()> {
             );
             let prepared = preparer.prepare(&frame).with_context(|| format!("{}", file.display()))?;
             let library = onnxruntime.or(config.model.onnxruntime.clone());
-            let mut encoder = Encoder::load(&bundle, library.as_deref(), config.model.threads)?;
+            let mut encoder = Encoder::load(&bundle, library.as_deref(), config.model.threads, config.model.spin)?;
             let encoding = encoder.encode(&[&prepared.points])?.remove(0);
             let out = serde_json::json!({
                 "file": file.display().to_string(),
@@ -269,7 +269,7 @@ fn run(command: Command) -> Result<()> {
                 bundle.manifest.model.regime,
                 bundle.manifest.sizes.points
             );
-            Encoder::load(&bundle, config.model.onnxruntime.as_deref(), 1)?;
+            Encoder::load(&bundle, config.model.onnxruntime.as_deref(), 1, false)?;
             println!(
                 "ONNX Runtime: {}",
                 loaded_library().map(|p| p.display().to_string()).unwrap_or_default()
@@ -329,7 +329,7 @@ fn run(command: Command) -> Result<()> {
                 }
             }
             if load {
-                let encoder = Encoder::load(&bundle, onnxruntime.as_deref(), 1)?;
+                let encoder = Encoder::load(&bundle, onnxruntime.as_deref(), 1, false)?;
                 println!(
                     "encoder {} loaded with ONNX Runtime from {}",
                     encoder.file().display(),

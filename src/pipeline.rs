@@ -119,7 +119,7 @@ pub fn run(
     // Encoders first: a bundle or runtime problem fails before any source starts.
     let mut encoders = Vec::new();
     for _ in 0..m.workers {
-        encoders.push(Encoder::load(bundle, m.onnxruntime.as_deref(), m.threads)?);
+        encoders.push(Encoder::load(bundle, m.onnxruntime.as_deref(), m.threads, m.spin)?);
     }
     let preparer = Arc::new(Preparer::new(
         &config.prepare,

@@ -140,7 +140,9 @@ pub struct Encoder {
 }
 
 impl Encoder {
-    pub fn load(bundle: &Bundle, library: Option<&Path>, threads: usize) -> Result<Self, RuntimeError> {
+    /// `spin`: let idle ONNX Runtime threads spin for work (lowest latency on otherwise idle cores;
+    /// wasted CPU when the node's other stages share the cores).
+    pub fn load(bundle: &Bundle, library: Option<&Path>, threads: usize, spin: bool) -> Result<Self, RuntimeError> {
         let environment = environment(library)?;
         let file = bundle.path("encoder.onnx");
         let session_error = |e: ort::Error| RuntimeError::Session {
@@ -152,6 +154,8 @@ impl Encoder {
             .with_intra_threads(threads.max(1))
             .map_err(|e| session_error(e.into()))?
             .with_inter_threads(1)
+            .map_err(|e| session_error(e.into()))?
+            .with_intra_op_spinning(spin)
             .map_err(|e| session_error(e.into()))?
             .commit_from_file(&file)
             .map_err(session_error)?;

@@ -207,12 +207,18 @@ pub fn decode_point_cloud2(payload: &[u8], max_points: usize) -> Result<DecodedC
     }
     let mut decoded = Vec::with_capacity(points);
     let mut dropped = 0;
+    let fast = !big_endian && [x, y, z].iter().all(|(_, datatype)| *datatype == 7);
     for row in 0..height {
         for column in 0..width {
             let start = row * row_step + column * point_step;
             let point = &data[start..start + point_step];
-            let value = |(offset, datatype): (usize, u8)| read_scalar(&point[offset..], datatype, big_endian);
-            let p = [value(x) as f32, value(y) as f32, value(z) as f32];
+            let p = if fast {
+                // The common layout (little-endian float32 x, y, z): no per-value dispatch.
+                [x.0, y.0, z.0].map(|o| f32::from_le_bytes([point[o], point[o + 1], point[o + 2], point[o + 3]]))
+            } else {
+                let value = |(offset, datatype): (usize, u8)| read_scalar(&point[offset..], datatype, big_endian);
+                [value(x) as f32, value(y) as f32, value(z) as f32]
+            };
             if p.iter().all(|c| c.is_finite()) {
                 decoded.push(p);
             } else {

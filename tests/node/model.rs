@@ -27,7 +27,7 @@ fn prepared(bundle: &Bundle, mesh: &str, seed: u64) -> Vec<[f32; 3]> {
 fn the_shipped_bundle_encodes_in_onnx_runtime() {
     let bundle = Bundle::load(shipped()).unwrap();
     let sizes = bundle.manifest.sizes;
-    let mut encoder = Encoder::load(&bundle, None, 1).unwrap();
+    let mut encoder = Encoder::load(&bundle, None, 1, false).unwrap();
     let a = prepared(&bundle, "biped_rest.ply", 0);
     let b = prepared(&bundle, "quadruped_rest.ply", 0);
     let batch = encoder.encode(&[&a, &b]).unwrap();
