@@ -158,6 +158,7 @@ pub fn run(settings: &SourceSettings, mut outlet: Outlet) -> Result<(), McapSour
                 message: e.to_string(),
             })?;
             let mut intrinsics: Option<Arc<CameraIntrinsics>> = None;
+            let mut waiting: Option<Vec<u8>> = None;
             for message in stream {
                 if outlet.stopping() {
                     return Ok(());
@@ -179,19 +180,35 @@ pub fn run(settings: &SourceSettings, mut outlet: Outlet) -> Result<(), McapSour
                     Wanted::Depth { info, .. } if topic == info => {
                         match decode_camera_info(&message.data) {
                             Ok((_, k)) => intrinsics = Some(Arc::new(k)),
-                            Err(e) => {
-                                log::warn!("{}: {topic}: CameraInfo ignored: {e}", file.display());
+                            Err(e) => log::warn!("{}: {topic}: CameraInfo ignored: {e}", file.display()),
+                        }
+                        // An image that came just before its camera's first CameraInfo goes now.
+                        match (&intrinsics, waiting.take()) {
+                            (Some(k), Some(image)) => Some(
+                                decode_depth_image(&image, k, settings.depth_step, settings.max_points)
+                                    .map(|c| (c.header.stamp_ns, c.points, c.dropped_non_finite)),
+                            ),
+                            (_, image) => {
+                                waiting = image;
+                                None
                             }
                         }
-                        None
                     }
-                    Wanted::Depth { image, .. } if topic == image => Some(match &intrinsics {
-                        Some(k) => decode_depth_image(&message.data, k, settings.depth_step, settings.max_points)
-                            .map(|c| (c.header.stamp_ns, c.points, c.dropped_non_finite)),
-                        None => Err(crate::sources::ros2::CdrError::Invalid(
-                            "depth image before any CameraInfo".into(),
-                        )),
-                    }),
+                    Wanted::Depth { image, .. } if topic == image => match &intrinsics {
+                        Some(k) => Some(
+                            decode_depth_image(&message.data, k, settings.depth_step, settings.max_points)
+                                .map(|c| (c.header.stamp_ns, c.points, c.dropped_non_finite)),
+                        ),
+                        None => {
+                            // Wait for the first CameraInfo; an image it replaces is rejected.
+                            let replaced = waiting.replace(message.data.to_vec());
+                            replaced.map(|_| {
+                                Err(crate::sources::ros2::CdrError::Invalid(
+                                    "depth image with no CameraInfo before the next image".into(),
+                                ))
+                            })
+                        }
+                    },
                     _ => None,
                 };
                 let Some(decoded) = decoded else { continue };
@@ -211,6 +228,11 @@ pub fn run(settings: &SourceSettings, mut outlet: Outlet) -> Result<(), McapSour
                 if !open {
                     return Ok(());
                 }
+            }
+            if waiting.take().is_some()
+                && !outlet.reject(format!("{}: depth image with no CameraInfo after it", file.display()), None)
+            {
+                return Ok(());
             }
         }
         if !settings.repeat {

@@ -3,8 +3,10 @@
 mod config;
 mod files;
 mod helpers;
+mod inputs;
 mod model;
 mod pipeline;
+mod prepare;
 mod ros2;
 mod sampling;
 mod track;
