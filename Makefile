@@ -20,8 +20,8 @@ test: test-rust test-python
 test-rust: venv
 	cargo test --workspace --release
 
-test-python: venv sim
-	$(PYTHON) -m pytest -q sim/tests/python
+test-python: venv sim node
+	$(PYTHON) -m pytest -q sim/tests/python tests/python
 	cd models && ../$(PYTHON) -m pytest -q tests
 
 # Build the simulator CLI (target/release/sim).

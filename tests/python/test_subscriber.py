@@ -1,0 +1,78 @@
+"""A Python eclipse-zenoh client reads the node's states and status, as README.md shows: the real
+`gdvae-node` binary (built by `make test`) replays the sample recording at its original 30 Hz."""
+
+import json
+import os
+import pathlib
+import signal
+import socket
+import subprocess
+import time
+
+import zenoh
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+NODE = os.environ.get("NODE_BIN", str(ROOT / "target" / "release" / "gdvae-node"))
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_python_subscriber_gets_states_and_status(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = tmp_path / "node.toml"
+    config.write_text(f"""
+[node]
+name = "py"
+[model]
+bundle = "{ROOT / 'models/bundles/cpu-gdvaepp'}"
+threads = 1
+[pipeline]
+summary_seconds = 0.0
+[prepare]
+sensor_to_gravity_rotation = [[0.0, 0.188847, -0.982006], [1.0, 0.0, 0.0], [0.0, -0.982006, -0.188847]]
+sensor_to_gravity_translation = [2.6, 0.0, 1.3]
+crop = [-1.2, -1.2, 0.02, 1.2, 1.2, 2.5]
+[zenoh]
+listen = ["{endpoint}"]
+multicast_scouting = false
+[[source]]
+stream = "sample"
+kind = "mcap"
+path = "{ROOT / 'sim/samples/walk_switch.mcap'}"
+repeat = true
+""")
+    node = subprocess.Popen([NODE, "-q", "run", "--config", str(config)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        zconfig = zenoh.Config()
+        zconfig.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        zconfig.insert_json5("scouting/multicast/enabled", "false")
+        states = []
+        with zenoh.open(zconfig) as session:
+            subscriber = session.declare_subscriber("gdvae/*/*/state",
+                                                    lambda sample: states.append(json.loads(sample.payload.to_bytes())))
+            deadline = time.monotonic() + 60
+            while len(states) < 30 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            status = None
+            while status is None and time.monotonic() < deadline:
+                for reply in session.get("gdvae/py/status", timeout=2.0):
+                    if reply.ok is not None:
+                        status = json.loads(reply.ok.payload.to_bytes())
+            subscriber.undeclare()
+        assert len(states) >= 30, f"{len(states)} states within 60 s"
+        sequences = [s["sequence"] for s in states]
+        assert sequences == sorted(sequences) and len(set(sequences)) == len(sequences)
+        last = states[-1]
+        assert last["schema"] == "gdvae.state/1" and last["stream"] == "sample"
+        assert len(last["shape"]["z_i"]) == 22 and len(last["filtered"]["z_e"]) == 10
+        assert status["schema"] == "gdvae.status/1" and status["node"] == "py"
+        assert status["counters"]["streams"]["sample"]["published"] >= 30
+    finally:
+        node.send_signal(signal.SIGINT)
+        out, err = node.communicate(timeout=30)
+    assert node.returncode == 0, err.decode()
+    assert b"streams:" in out
