@@ -131,7 +131,10 @@ pub fn run(
     let mut threads: Vec<(String, JoinHandle<()>)> = Vec::new();
     let mut source_channels: Vec<(bool, Receiver<Ingest>)> = Vec::new();
     let mut subscribers = Vec::new();
-    for source in &config.sources {
+    // Zenoh subscriptions first: if one fails, no source thread has started yet.
+    let mut ordered: Vec<&crate::config::SourceSettings> = config.sources.iter().collect();
+    ordered.sort_by_key(|s| s.kind != SourceKind::Zenoh);
+    for source in ordered {
         let live = source.is_live();
         let (outlet, receiver) = Outlet::new(&source.stream, live, queue, stats.clone(), stop.clone());
         source_channels.push((live, receiver));
@@ -442,6 +445,20 @@ fn encode(rx: Receiver<Vec<Ticketed<PreparedFrame>>>, tx: Sender<Ticketed<Done>>
         match result {
             Ok(encodings) => {
                 for ((ticket, frame), encoding) in batch.into_iter().zip(encodings) {
+                    if !encoding.is_finite() {
+                        let rejection = Rejection {
+                            stream: frame.origin.stream,
+                            sequence: frame.origin.sequence,
+                            stage: "encode",
+                            reason: "the encoder's output is not finite".into(),
+                            sensor_stamp_ns: frame.origin.sensor_stamp_ns,
+                            ingest_unix_ns: frame.origin.ingest_unix_ns,
+                        };
+                        if tx.send((ticket, Done::Rejected(rejection))).is_err() {
+                            return;
+                        }
+                        continue;
+                    }
                     let queue_ms = (start - frame.prepared_at).as_secs_f32() * 1000.0;
                     stats.record("queue", queue_ms);
                     let encoded = EncodedFrame {

@@ -2,23 +2,13 @@
 `gdvae-node` binary (built by `make test`) replays the sample recording at its original 30 Hz."""
 
 import json
-import os
-import pathlib
 import signal
-import socket
 import subprocess
 import time
 
 import zenoh
 
-ROOT = pathlib.Path(__file__).resolve().parents[2]
-NODE = os.environ.get("NODE_BIN", str(ROOT / "target" / "release" / "gdvae-node"))
-
-
-def free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from node_paths import NODE, ROOT, free_port
 
 
 def test_a_python_subscriber_gets_states_and_status(tmp_path):
