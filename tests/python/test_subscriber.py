@@ -52,7 +52,10 @@ repeat = true
                 for reply in session.get("gdvae/py/status", timeout=2.0):
                     if reply.ok is not None:
                         status = json.loads(reply.ok.payload.to_bytes())
+            alive = [str(reply.ok.key_expr) for reply in session.liveliness().get("gdvae/py/alive", timeout=5.0)
+                     if reply.ok is not None]
             subscriber.undeclare()
+        assert alive == ["gdvae/py/alive"], "the node's liveliness token"
         assert len(states) >= 30, f"{len(states)} states within 60 s"
         sequences = [s["sequence"] for s in states]
         assert sequences == sorted(sequences) and len(set(sequences)) == len(sequences)
