@@ -128,3 +128,29 @@ fn pcd_written_by_pypcd4_in_all_three_encodings() {
         }
     }
 }
+
+#[test]
+fn ply_and_obj_meshes_written_by_trimesh_are_sampled_over_their_surface() {
+    let fixtures = crate::helpers::repo().join("tests/fixtures");
+    let expected: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fixtures.join("expected_mesh.json")).unwrap()).unwrap();
+    let centre: Vec<f32> = (0..3).map(|a| expected["centre"][a].as_f64().unwrap() as f32).collect();
+    let radius = expected["radius"].as_f64().unwrap() as f32;
+    let options = FileOptions::default();
+    for name in ["trimesh_ascii.ply", "trimesh_binary.ply", "trimesh.obj"] {
+        let read = read_cloud(&fixtures.join(name), &options).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(read.cloud.len(), options.mesh_samples, "{name}: surface samples, not the 642 vertices");
+        let mut mean = [0.0f32; 3];
+        for p in &read.cloud.points {
+            let distance = (0..3).map(|a| (p[a] - centre[a]).powi(2)).sum::<f32>().sqrt();
+            // Flat faces of a subdivision-3 icosphere lie within 1.5 % inside the sphere.
+            assert!(distance <= radius * 1.0001 && distance >= radius * 0.98, "{name}: {distance}");
+            for a in 0..3 {
+                mean[a] += p[a] / read.cloud.len() as f32;
+            }
+        }
+        for a in 0..3 {
+            assert!((mean[a] - centre[a]).abs() < 0.01, "{name}: area-weighted samples centre on the sphere");
+        }
+    }
+}
