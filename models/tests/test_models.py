@@ -149,3 +149,23 @@ def test_gdvaepp_cuts_the_intrinsic_consistency_gradient_through_the_flow():
     vae_loss(model, q, torch.randn(8, 24), spectra, dataset_size=50, with_jacobian=False).total.backward()
     assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.flow.parameters())
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.intrinsic.mean.parameters())
+
+
+def test_reconstruction_normalisation_per_dimension_or_relative():
+    """The paper's L_R divides the relative x_c error by n = dim(x_c); the CPU recipe drops the 1/n."""
+    q = torch.nn.functional.normalize(torch.randn(8, 4), dim=-1)
+    x_c, spectra = torch.randn(8, 24), torch.rand(8, 6).cumsum(-1) + 1
+    parts = {}
+    for per_dimension in (True, False):
+        torch.manual_seed(0)
+        config = small_vae()
+        config.reconstruction_per_dimension = per_dimension
+        model = LatentVAE(config)
+        model.flow.input.fit(spectra)
+        model.code_norm.fill_(float(x_c.pow(2).sum(-1).mean()))
+        torch.manual_seed(1)
+        parts[per_dimension] = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False).parts
+    assert parts[False]["reconstruction"] == pytest.approx(24 * parts[True]["reconstruction"], rel=1e-5)
+    from gdvae.train import recipe
+    assert recipe("cpu").vae.reconstruction_per_dimension is False
+    assert recipe("paper").vae.reconstruction_per_dimension is True
