@@ -167,13 +167,7 @@ fn run(command: Command) -> Result<()> {
             json,
             no_baseline,
         } => {
-            let mut config = match config {
-                Some(path) => Config::load(&path)?,
-                None => Config::default(),
-            };
-            if let Some(bundle) = bundle {
-                config.model.bundle = bundle;
-            }
+            let mut config = starting_config(config, bundle)?;
             config.sources = replay_sources(&inputs, speed)?;
             config.publish.zenoh = zenoh;
             config.publish.jsonl = jsonl;
@@ -204,13 +198,7 @@ fn run(command: Command) -> Result<()> {
             onnxruntime,
             seed,
         } => {
-            let mut config = match config {
-                Some(path) => Config::load(&path)?,
-                None => Config::default(),
-            };
-            if let Some(bundle) = bundle {
-                config.model.bundle = bundle;
-            }
+            let mut config = starting_config(config, bundle)?;
             if let Some(sampling) = sampling {
                 config.prepare.sampling = match sampling {
                     SamplingArg::Farthest => Sampling::Farthest,
@@ -339,6 +327,18 @@ fn run(command: Command) -> Result<()> {
             Ok(())
         }
     }
+}
+
+/// The config a one-off command starts from: the given file or the defaults, with `--bundle` applied.
+fn starting_config(path: Option<PathBuf>, bundle: Option<PathBuf>) -> Result<Config> {
+    let mut config = match path {
+        Some(path) => Config::load(&path)?,
+        None => Config::default(),
+    };
+    if let Some(bundle) = bundle {
+        config.model.bundle = bundle;
+    }
+    Ok(config)
 }
 
 /// One replay source per input: MCAP files and rosbag2 folders replay their point clouds, other

@@ -1,6 +1,11 @@
-"""Where the node's Python checks find the repository, the built binaries and a free port."""
+"""Shared by the node's Python checks: the repository, the built binaries, a free port, and the
+node binary started on a config and stopped by SIGINT."""
 
+import contextlib
+import json
 import os
+import signal
+import subprocess
 import pathlib
 import socket
 
@@ -14,3 +19,29 @@ def free_port():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def client(endpoint):
+    """A zenoh session connected to `endpoint` only (no multicast scouting)."""
+    import zenoh
+
+    config = zenoh.Config()
+    config.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(config)
+
+
+@contextlib.contextmanager
+def running_node(config_path):
+    """Runs `gdvae-node run --config config_path`; on exit sends SIGINT and checks it exits 0.
+    Yields a dict that receives the node's `stdout` after it stopped."""
+    node = subprocess.Popen([NODE, "-q", "run", "--config", str(config_path)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    result = {}
+    try:
+        yield result
+    finally:
+        node.send_signal(signal.SIGINT)
+        out, err = node.communicate(timeout=30)
+        result["stdout"] = out.decode()
+    assert node.returncode == 0, err.decode()

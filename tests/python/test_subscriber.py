@@ -1,17 +1,14 @@
-"""A Python eclipse-zenoh client reads the node's states and status, as README.md shows: the real
-`gdvae-node` binary (built by `make test`) replays the sample recording at its original 30 Hz."""
+"""A Python eclipse-zenoh client reads the node's states, status and liveliness, as README.md
+shows: the real `gdvae-node` binary (built by `make test`) replays the sample recording at 30 Hz."""
 
-import json
-import signal
-import subprocess
 import time
 
-import zenoh
+import json
 
-from node_paths import NODE, ROOT, free_port
+from node_paths import ROOT, client, free_port, running_node
 
 
-def test_a_python_subscriber_gets_states_and_status(tmp_path):
+def test_a_python_subscriber_gets_states_status_and_liveliness(tmp_path):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     config = tmp_path / "node.toml"
     config.write_text(f"""
@@ -35,37 +32,28 @@ kind = "mcap"
 path = "{ROOT / 'sim/samples/walk_switch.mcap'}"
 repeat = true
 """)
-    node = subprocess.Popen([NODE, "-q", "run", "--config", str(config)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    try:
-        zconfig = zenoh.Config()
-        zconfig.insert_json5("connect/endpoints", json.dumps([endpoint]))
-        zconfig.insert_json5("scouting/multicast/enabled", "false")
-        states = []
-        with zenoh.open(zconfig) as session:
-            subscriber = session.declare_subscriber("gdvae/*/*/state",
-                                                    lambda sample: states.append(json.loads(sample.payload.to_bytes())))
-            deadline = time.monotonic() + 60
-            while len(states) < 30 and time.monotonic() < deadline:
-                time.sleep(0.05)
-            status = None
-            while status is None and time.monotonic() < deadline:
-                for reply in session.get("gdvae/py/status", timeout=2.0):
-                    if reply.ok is not None:
-                        status = json.loads(reply.ok.payload.to_bytes())
-            alive = [str(reply.ok.key_expr) for reply in session.liveliness().get("gdvae/py/alive", timeout=5.0)
-                     if reply.ok is not None]
-            subscriber.undeclare()
-        assert alive == ["gdvae/py/alive"], "the node's liveliness token"
-        assert len(states) >= 30, f"{len(states)} states within 60 s"
-        sequences = [s["sequence"] for s in states]
-        assert sequences == sorted(sequences) and len(set(sequences)) == len(sequences)
-        last = states[-1]
-        assert last["schema"] == "gdvae.state/1" and last["stream"] == "sample"
-        assert len(last["shape"]["z_i"]) == 22 and len(last["filtered"]["z_e"]) == 10
-        assert status["schema"] == "gdvae.status/1" and status["node"] == "py"
-        assert status["counters"]["streams"]["sample"]["published"] >= 30
-    finally:
-        node.send_signal(signal.SIGINT)
-        out, err = node.communicate(timeout=30)
-    assert node.returncode == 0, err.decode()
-    assert b"streams:" in out
+    states = []
+    with running_node(config) as node, client(endpoint) as session:
+        subscriber = session.declare_subscriber("gdvae/*/*/state",
+                                                lambda sample: states.append(json.loads(sample.payload.to_bytes())))
+        deadline = time.monotonic() + 60
+        while len(states) < 30 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        status = None
+        while status is None and time.monotonic() < deadline:
+            for reply in session.get("gdvae/py/status", timeout=2.0):
+                if reply.ok is not None:
+                    status = json.loads(reply.ok.payload.to_bytes())
+        alive = [str(reply.ok.key_expr) for reply in session.liveliness().get("gdvae/py/alive", timeout=5.0)
+                 if reply.ok is not None]
+        subscriber.undeclare()
+    assert alive == ["gdvae/py/alive"], "the node's liveliness token"
+    assert len(states) >= 30, f"{len(states)} states within 60 s"
+    sequences = [s["sequence"] for s in states]
+    assert sequences == sorted(sequences) and len(set(sequences)) == len(sequences)
+    last = states[-1]
+    assert last["schema"] == "gdvae.state/1" and last["stream"] == "sample"
+    assert len(last["shape"]["z_i"]) == 22 and len(last["filtered"]["z_e"]) == 10
+    assert status["schema"] == "gdvae.status/1" and status["node"] == "py"
+    assert status["counters"]["streams"]["sample"]["published"] >= 30
+    assert "streams:" in node["stdout"]
