@@ -485,8 +485,13 @@ fn print_report(
     println!("streams:");
     for (name, c) in &s.streams {
         println!(
-            "  {name:<16} {:>6} received {:>6} published {:>4} dropped {:>4} rejected {:?}",
-            c.received, c.published, c.dropped, c.rejected.values().sum::<u64>(), c.rejected
+            "  {name:<16} {:>6} received {:>6} published {:>4} dropped {:>4} rejected {:?}{}",
+            c.received,
+            c.published,
+            c.dropped,
+            c.rejected.values().sum::<u64>(),
+            c.rejected,
+            if c.publish_errors > 0 { format!(" {} publish errors", c.publish_errors) } else { String::new() }
         );
     }
     println!("latency (ms)      count     mean      p50      p90      p99      max");

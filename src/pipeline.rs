@@ -179,7 +179,7 @@ pub fn run(
     let (work_tx, work_rx) = bounded::<Ticketed<Work>>(queue);
     let (batch_tx, batch_rx) = bounded::<Vec<Ticketed<PreparedFrame>>>(m.workers * 2);
     let (done_tx, done_rx) = bounded::<Ticketed<Done>>(queue * 2);
-    let (publish_tx, publish_rx) = bounded::<(Output, Instant)>(queue);
+    let (publish_tx, publish_rx) = bounded::<(Output, Instant, Instant)>(queue);
     let queues = Arc::new(Queues {
         channels: vec![
             ("prepare", Box::new({ let r = prepare_rx.clone(); move || r.len() }) as Box<dyn Fn() -> usize + Send + Sync>),
@@ -251,18 +251,31 @@ pub fn run(
     let mut subscribers = Some(subscribers);
     loop {
         match publish_rx.recv_timeout(Duration::from_millis(50)) {
-            Ok((output, tracked_at)) => {
-                let stream = match &output {
-                    Output::State(s) => s.stream.clone(),
-                    Output::Rejected(r) => r.stream.clone(),
+            Ok((mut output, tracked_at, ingested)) => {
+                let stream = match &mut output {
+                    Output::State(state) => {
+                        // Stamped here, so that `total_ms` is ingest to publish.
+                        state.stamps.publish_ns = unix_now_ns();
+                        state.latency.total_ms = ms_since(ingested);
+                        state.stream.clone()
+                    }
+                    Output::Rejected(r) => {
+                        r.stamps.publish_ns = unix_now_ns();
+                        r.stream.clone()
+                    }
                 };
-                if let Err(e) = publisher.publish(&output) {
-                    log::error!("publishing on stream '{stream}': {e}");
-                }
                 stats.record("publish", ms_since(tracked_at));
-                if let Output::State(state) = &output {
-                    stats.record("end_to_end", state.latency.total_ms.max(0.0));
-                    stats.stream(&stream).add_published();
+                let counters = stats.stream(&stream);
+                match publisher.publish(&output) {
+                    Ok(()) if matches!(output, Output::State(_)) => {
+                        stats.record("end_to_end", ms_since(ingested));
+                        counters.add_published();
+                    }
+                    Ok(()) => {}
+                    Err(e) => {
+                        counters.add_publish_error();
+                        log::error!("publishing on stream '{stream}' failed ({} so far): {e}", counters.publish_errors());
+                    }
                 }
             }
             Err(crossbeam_channel::RecvTimeoutError::Timeout) => {}
@@ -338,6 +351,20 @@ fn ingest(
     }
 }
 
+impl Origin {
+    fn reject(self, stage: &'static str, reason: String) -> Rejection {
+        Rejection {
+            stream: self.stream,
+            sequence: self.sequence,
+            stage,
+            reason,
+            sensor_stamp_ns: self.sensor_stamp_ns,
+            ingested: self.ingested,
+            ingest_unix_ns: self.ingest_unix_ns,
+        }
+    }
+}
+
 fn origin_of(frame: &crate::cloud::Frame) -> Origin {
     Origin {
         stream: frame.stream.clone(),
@@ -365,14 +392,9 @@ fn prepare(rx: Receiver<Ticketed<Ingest>>, tx: Sender<Ticketed<Work>>, preparer:
                         prepare_ms,
                         prepared_at: Instant::now(),
                     }),
-                    Err(e) => Work::Rejected(Rejection {
-                        stream: frame.stream.clone(),
-                        sequence: frame.sequence,
-                        stage: "prepare",
-                        reason: format!("{} points received: {e}", frame.cloud.len()),
-                        sensor_stamp_ns: frame.sensor_stamp_ns,
-                        ingest_unix_ns: frame.ingest_unix_ns,
-                    }),
+                    Err(e) => Work::Rejected(
+                        origin_of(&frame).reject("prepare", format!("{} points received: {e}", frame.cloud.len())),
+                    ),
                 }
             }
         };
@@ -446,14 +468,7 @@ fn encode(rx: Receiver<Vec<Ticketed<PreparedFrame>>>, tx: Sender<Ticketed<Done>>
             Ok(encodings) => {
                 for ((ticket, frame), encoding) in batch.into_iter().zip(encodings) {
                     if !encoding.is_finite() {
-                        let rejection = Rejection {
-                            stream: frame.origin.stream,
-                            sequence: frame.origin.sequence,
-                            stage: "encode",
-                            reason: "the encoder's output is not finite".into(),
-                            sensor_stamp_ns: frame.origin.sensor_stamp_ns,
-                            ingest_unix_ns: frame.origin.ingest_unix_ns,
-                        };
+                        let rejection = frame.origin.reject("encode", "the encoder's output is not finite".into());
                         if tx.send((ticket, Done::Rejected(rejection))).is_err() {
                             return;
                         }
@@ -476,14 +491,7 @@ fn encode(rx: Receiver<Vec<Ticketed<PreparedFrame>>>, tx: Sender<Ticketed<Done>>
             }
             Err(e) => {
                 for (ticket, frame) in batch {
-                    let rejection = Rejection {
-                        stream: frame.origin.stream,
-                        sequence: frame.origin.sequence,
-                        stage: "encode",
-                        reason: e.to_string(),
-                        sensor_stamp_ns: frame.origin.sensor_stamp_ns,
-                        ingest_unix_ns: frame.origin.ingest_unix_ns,
-                    };
+                    let rejection = frame.origin.reject("encode", e.to_string());
                     if tx.send((ticket, Done::Rejected(rejection))).is_err() {
                         return;
                     }
@@ -501,7 +509,7 @@ struct StreamTracker {
     rejections_logged: u64,
 }
 
-fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant)>, config: &Config, stats: &Stats) {
+fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant, Instant)>, config: &Config, stats: &Stats) {
     let mut pending: BTreeMap<u64, Done> = BTreeMap::new();
     let mut next = 0u64;
     let mut trackers: HashMap<String, StreamTracker> = HashMap::new();
@@ -513,9 +521,9 @@ fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant)>, config: &C
         while let Some(done) = pending.remove(&next) {
             next += 1;
             let start = Instant::now();
-            let stream = match &done {
-                Done::Encoded(f) => f.origin.stream.clone(),
-                Done::Rejected(r) => r.stream.clone(),
+            let (stream, ingested) = match &done {
+                Done::Encoded(f) => (f.origin.stream.clone(), f.origin.ingested),
+                Done::Rejected(r) => (r.stream.clone(), r.ingested),
             };
             let tracker = trackers.entry(stream.clone()).or_insert_with(|| StreamTracker {
                 shape: ShapeFilter::new(settings),
@@ -557,7 +565,7 @@ fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant)>, config: &C
                 }
             };
             stats.record("track", ms_since(start));
-            if tx.send((output, Instant::now())).is_err() {
+            if tx.send((output, Instant::now(), ingested)).is_err() {
                 return;
             }
         }

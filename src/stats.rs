@@ -76,6 +76,7 @@ pub struct StreamCounters {
     dropped: AtomicU64,
     non_finite_points: AtomicU64,
     published: AtomicU64,
+    publish_errors: AtomicU64,
     rejected: Mutex<BTreeMap<String, u64>>,
 }
 
@@ -95,6 +96,12 @@ impl StreamCounters {
     pub fn add_published(&self) {
         self.published.fetch_add(1, Ordering::Relaxed);
     }
+    pub fn add_publish_error(&self) {
+        self.publish_errors.fetch_add(1, Ordering::Relaxed);
+    }
+    pub fn publish_errors(&self) -> u64 {
+        self.publish_errors.load(Ordering::Relaxed)
+    }
     pub fn add_rejected(&self, stage: &str) {
         *self.rejected.lock().expect("counter lock").entry(stage.to_string()).or_default() += 1;
     }
@@ -106,6 +113,8 @@ pub struct StreamSnapshot {
     pub dropped: u64,
     pub rejected: BTreeMap<String, u64>,
     pub published: u64,
+    /// Outputs the sinks failed to send (logged).
+    pub publish_errors: u64,
     pub non_finite_points: u64,
 }
 
@@ -154,6 +163,7 @@ impl Stats {
                         dropped: c.dropped.load(Ordering::Relaxed),
                         rejected: c.rejected.lock().expect("counter lock").clone(),
                         published: c.published.load(Ordering::Relaxed),
+                        publish_errors: c.publish_errors.load(Ordering::Relaxed),
                         non_finite_points: c.non_finite_points.load(Ordering::Relaxed),
                     },
                 )

@@ -28,6 +28,7 @@ pub struct Rejection {
     pub stage: &'static str,
     pub reason: String,
     pub sensor_stamp_ns: Option<u64>,
+    pub ingested: Instant,
     pub ingest_unix_ns: u64,
 }
 
@@ -115,6 +116,7 @@ impl Outlet {
             stage: "source",
             reason,
             sensor_stamp_ns,
+            ingested: Instant::now(),
             ingest_unix_ns: unix_now_ns(),
         };
         self.send(Ingest::Rejected(rejection))
