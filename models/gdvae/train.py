@@ -68,8 +68,8 @@ def recipe(name: str, regime: str = "gdvae++", kind: str = "ftl") -> Recipe:
         # mean code (600 VAE iterations from the same AE: relative error 0.63 without, 1.1 with).
         return Recipe("cpu", ae, replace(vae, latent=ae.latent, width_scale=0.25, flow_hidden=400,
                                          reconstruction_per_dimension=False),
-                      ae_iterations=12000, ae_pretrain_iterations=300, ae_batch=24, ae_learning_rate=1e-3,
-                      vae_iterations=8000, vae_batch=256)
+                      ae_iterations=7700, ae_pretrain_iterations=300, ae_batch=24, ae_learning_rate=1e-3,
+                      vae_iterations=3000, vae_batch=256)
     if name == "smoke":
         ae = AEConfig(kind=kind, points=128, latent=48, rotation_hidden=(16, 32), shape_hidden=(16, 32),
                       decoder_width=32, copies=2)
