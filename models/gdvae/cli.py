@@ -44,6 +44,8 @@ def train_command(args) -> int:
         chosen.ae_iterations = args.ae_iterations
     if args.vae_iterations is not None:
         chosen.vae_iterations = args.vae_iterations
+    if args.relative_reconstruction:
+        chosen.vae.reconstruction_per_dimension = False
     chosen.ae.supervised = not args.unsupervised
     chosen.ae.full_rotations = args.full_rotations
     dataset = load_dataset(args.dataset, limit=args.limit)
@@ -155,6 +157,8 @@ def main(argv=None) -> int:
     training.add_argument("--full-rotations", action="store_true", help="rotations over SO(3), not about the up axis")
     training.add_argument("--ae-iterations", type=int, help="override the recipe's AE iterations")
     training.add_argument("--vae-iterations", type=int, help="override the recipe's VAE iterations")
+    training.add_argument("--relative-reconstruction", action="store_true",
+                          help="VAE L_R without the paper's 1/dim(x_c) (better reconstruction, lower S)")
     training.add_argument("--stop-after", choices=["ae"], help="stop after this stage")
     training.add_argument("--init-from", help="reuse another run's trained AE and code bank (compare VAE regimes)")
     training.add_argument("--limit", type=int, help="use only the first N meshes")

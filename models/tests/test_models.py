@@ -152,7 +152,7 @@ def test_gdvaepp_cuts_the_intrinsic_consistency_gradient_through_the_flow():
 
 
 def test_reconstruction_normalisation_per_dimension_or_relative():
-    """The paper's L_R divides the relative x_c error by n = dim(x_c); the CPU recipe drops the 1/n."""
+    """The paper's L_R divides the relative x_c error by n = dim(x_c); `--relative-reconstruction` drops the 1/n."""
     q = torch.nn.functional.normalize(torch.randn(8, 4), dim=-1)
     x_c, spectra = torch.randn(8, 24), torch.rand(8, 6).cumsum(-1) + 1
     parts = {}
@@ -167,5 +167,5 @@ def test_reconstruction_normalisation_per_dimension_or_relative():
         parts[per_dimension] = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False).parts
     assert parts[False]["reconstruction"] == pytest.approx(24 * parts[True]["reconstruction"], rel=1e-5)
     from gdvae.train import recipe
-    assert recipe("cpu").vae.reconstruction_per_dimension is False
+    assert recipe("cpu").vae.reconstruction_per_dimension is True
     assert recipe("paper").vae.reconstruction_per_dimension is True
