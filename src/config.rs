@@ -337,6 +337,11 @@ pub struct SourceSettings {
     /// Largest frame accepted (points); bigger frames are rejected before they are decoded.
     #[serde(default = "default_max_points")]
     pub max_points: usize,
+    /// This sensor's pose, when it differs from `[prepare]`'s: sensor frame -> gravity frame.
+    #[serde(default)]
+    pub sensor_to_gravity_rotation: Option<[[f32; 3]; 3]>,
+    #[serde(default)]
+    pub sensor_to_gravity_translation: Option<[f32; 3]>,
 }
 
 fn default_depth_step() -> usize {
@@ -356,6 +361,16 @@ impl SourceSettings {
     /// Live sources never block their sensor: when the pipeline is behind they drop the oldest frame.
     pub fn is_live(&self) -> bool {
         self.kind == SourceKind::Zenoh
+    }
+}
+
+fn check_rotation(key: &str, rows: &[[f32; 3]; 3]) -> Result<(), String> {
+    let r = nalgebra::Matrix3::from_fn(|i, j| rows[i][j]);
+    let orthogonality = (r.transpose() * r - nalgebra::Matrix3::identity()).abs().max();
+    if orthogonality < 1e-3 && (r.determinant() - 1.0).abs() < 1e-3 {
+        Ok(())
+    } else {
+        Err(format!("{key} must be a rotation matrix (orthonormal, determinant 1)"))
     }
 }
 
@@ -408,9 +423,14 @@ impl Config {
     /// Checks every value once; the message names the key.
     pub fn validate(&self) -> Result<(), String> {
         let key_part = |what: &str, value: &str| {
-            if value.is_empty() || value.contains(['*', '$', '#', '?']) || value.starts_with('/') || value.ends_with('/')
+            if value.is_empty()
+                || value.contains(['*', '$', '#', '?'])
+                || value.starts_with('/')
+                || value.ends_with('/')
             {
-                Err(format!("{what} '{value}' must be a non-empty key expression part without wildcards"))
+                Err(format!(
+                    "{what} '{value}' must be a non-empty key expression part without wildcards"
+                ))
             } else {
                 Ok(())
             }
@@ -431,14 +451,12 @@ impl Config {
             return Err("pipeline.summary_seconds must be >= 0".into());
         }
         let p = &self.prepare;
-        let r = nalgebra::Matrix3::from_fn(|i, j| p.sensor_to_gravity_rotation[i][j]);
-        let orthogonality = (r.transpose() * r - nalgebra::Matrix3::identity()).abs().max();
-        if !(orthogonality < 1e-3) || !((r.determinant() - 1.0).abs() < 1e-3) {
-            return Err("prepare.sensor_to_gravity_rotation must be a rotation matrix (orthonormal, determinant 1)".into());
-        }
+        check_rotation("prepare.sensor_to_gravity_rotation", &p.sensor_to_gravity_rotation)?;
         if let Some(c) = p.crop {
             if !(c[0] < c[3] && c[1] < c[4] && c[2] < c[5]) {
-                return Err(format!("prepare.crop {c:?} must be [min_x, min_y, min_z, max_x, max_y, max_z] with min < max"));
+                return Err(format!(
+                    "prepare.crop {c:?} must be [min_x, min_y, min_z, max_x, max_y, max_z] with min < max"
+                ));
             }
         }
         if !(p.ground_tolerance_m > 0.0) || !(p.voxel_m > 0.0) || p.min_points == 0 {
@@ -459,7 +477,10 @@ impl Config {
             return Err("track.min_cutoff_hz and track.nominal_rate_hz must be positive, track.beta >= 0".into());
         }
         if !matches!(self.zenoh.mode.as_str(), "peer" | "client") {
-            return Err(format!("zenoh.mode '{}' must be \"peer\" or \"client\"", self.zenoh.mode));
+            return Err(format!(
+                "zenoh.mode '{}' must be \"peer\" or \"client\"",
+                self.zenoh.mode
+            ));
         }
         if self.zenoh.mode == "client" && self.zenoh.connect.is_empty() {
             return Err("zenoh.mode = \"client\" needs a router in zenoh.connect".into());
@@ -482,6 +503,9 @@ impl Config {
             }
             if !(s.speed >= 0.0 && s.speed.is_finite()) || !(s.rate_hz >= 0.0 && s.rate_hz.is_finite()) {
                 return Err(format!("{at}: speed and rate_hz must be finite and >= 0"));
+            }
+            if let Some(rotation) = &s.sensor_to_gravity_rotation {
+                check_rotation(&format!("{at} sensor_to_gravity_rotation"), rotation)?;
             }
             if s.depth_step == 0 || s.max_points == 0 {
                 return Err(format!("{at}: depth_step and max_points must be at least 1"));

@@ -172,18 +172,18 @@ fn run(command: Command) -> Result<()> {
             config.publish.zenoh = zenoh;
             config.publish.jsonl = jsonl;
             config.validate().map_err(anyhow::Error::msg)?;
-            let summary = run_pipeline(
-                &config,
-                RunOptions {
-                    lossless_publish: true,
-                },
-                false,
-            )?;
+            let summary = run_pipeline(&config, RunOptions { lossless_publish: true }, false)?;
             let baseline = if no_baseline {
                 None
             } else {
                 let bundle = Bundle::load(&config.model.bundle)?;
-                let frames = summary.snapshot.streams.values().map(|s| s.published).sum::<u64>().max(64) as usize;
+                let frames = summary
+                    .snapshot
+                    .streams
+                    .values()
+                    .map(|s| s.published)
+                    .sum::<u64>()
+                    .max(64) as usize;
                 Some(gdvae_node::benchmark::encoder_alone(&bundle, &config.model, frames)?)
             };
             print_report(&summary, baseline.as_ref().map(|b| (b, &config)), json)?;
@@ -231,7 +231,9 @@ fn run(command: Command) -> Result<()> {
                 bundle.manifest.sizes.points,
                 bundle.manifest.units.model_units_per_metre as f32,
             );
-            let prepared = preparer.prepare(&frame).with_context(|| format!("{}", file.display()))?;
+            let prepared = preparer
+                .prepare(&frame)
+                .with_context(|| format!("{}", file.display()))?;
             let library = onnxruntime.or(config.model.onnxruntime.clone());
             let mut encoder = Encoder::load(&bundle, library.as_deref(), config.model.threads, config.model.spin)?;
             let encoding = encoder.encode(&[&prepared.points])?.remove(0);
@@ -265,15 +267,22 @@ fn run(command: Command) -> Result<()> {
             for source in &config.sources {
                 match source.kind {
                     SourceKind::Files => {
-                        let files = gdvae_node::sources::files::list_files(source.path.as_deref().unwrap_or(Path::new("")))?;
+                        let files =
+                            gdvae_node::sources::files::list_files(source.path.as_deref().unwrap_or(Path::new("")))?;
                         println!("source '{}': {} file(s)", source.stream, files.len());
                     }
                     SourceKind::Mcap => {
-                        let files = gdvae_node::sources::mcap::recording_files(source.path.as_deref().unwrap_or(Path::new("")))?;
+                        let files = gdvae_node::sources::mcap::recording_files(
+                            source.path.as_deref().unwrap_or(Path::new("")),
+                        )?;
                         println!("source '{}': {} recording file(s)", source.stream, files.len());
                     }
                     SourceKind::Zenoh => {
-                        println!("source '{}': zenoh key {}", source.stream, source.key.as_deref().unwrap_or(""))
+                        println!(
+                            "source '{}': zenoh key {}",
+                            source.stream,
+                            source.key.as_deref().unwrap_or("")
+                        )
                     }
                 }
             }
@@ -491,7 +500,11 @@ fn print_report(
             c.dropped,
             c.rejected.values().sum::<u64>(),
             c.rejected,
-            if c.publish_errors > 0 { format!(" {} publish errors", c.publish_errors) } else { String::new() }
+            if c.publish_errors > 0 {
+                format!(" {} publish errors", c.publish_errors)
+            } else {
+                String::new()
+            }
         );
     }
     println!("latency (ms)      count     mean      p50      p90      p99      max");

@@ -121,11 +121,14 @@ pub fn run(
     for _ in 0..m.workers {
         encoders.push(Encoder::load(bundle, m.onnxruntime.as_deref(), m.threads, m.spin)?);
     }
-    let preparer = Arc::new(Preparer::new(
-        &config.prepare,
-        bundle.manifest.sizes.points,
-        bundle.manifest.units.model_units_per_metre as f32,
-    ));
+    let preparer = Arc::new(
+        Preparer::new(
+            &config.prepare,
+            bundle.manifest.sizes.points,
+            bundle.manifest.units.model_units_per_metre as f32,
+        )
+        .with_sources(&config.sources),
+    );
 
     // Sources.
     let mut threads: Vec<(String, JoinHandle<()>)> = Vec::new();
@@ -150,7 +153,11 @@ pub fn run(
                         stream: source.stream.clone(),
                         message: e.to_string(),
                     })?;
-                log::info!("source '{}': zenoh subscription to {}", source.stream, source.key.as_deref().unwrap_or(""));
+                log::info!(
+                    "source '{}': zenoh subscription to {}",
+                    source.stream,
+                    source.key.as_deref().unwrap_or("")
+                );
                 subscribers.push(subscriber);
             }
             SourceKind::Files | SourceKind::Mcap => {
@@ -182,11 +189,41 @@ pub fn run(
     let (publish_tx, publish_rx) = bounded::<(Output, Instant, Instant)>(queue);
     let queues = Arc::new(Queues {
         channels: vec![
-            ("prepare", Box::new({ let r = prepare_rx.clone(); move || r.len() }) as Box<dyn Fn() -> usize + Send + Sync>),
-            ("batch", Box::new({ let r = work_rx.clone(); move || r.len() })),
-            ("encode", Box::new({ let r = batch_rx.clone(); move || r.len() })),
-            ("track", Box::new({ let r = done_rx.clone(); move || r.len() })),
-            ("publish", Box::new({ let r = publish_rx.clone(); move || r.len() })),
+            (
+                "prepare",
+                Box::new({
+                    let r = prepare_rx.clone();
+                    move || r.len()
+                }) as Box<dyn Fn() -> usize + Send + Sync>,
+            ),
+            (
+                "batch",
+                Box::new({
+                    let r = work_rx.clone();
+                    move || r.len()
+                }),
+            ),
+            (
+                "encode",
+                Box::new({
+                    let r = batch_rx.clone();
+                    move || r.len()
+                }),
+            ),
+            (
+                "track",
+                Box::new({
+                    let r = done_rx.clone();
+                    move || r.len()
+                }),
+            ),
+            (
+                "publish",
+                Box::new({
+                    let r = publish_rx.clone();
+                    move || r.len()
+                }),
+            ),
         ],
     });
 
@@ -202,11 +239,17 @@ pub fn run(
     {
         let stop = stop.clone();
         let first = first_ingest.clone();
-        threads.push(spawn("ingest".into(), Box::new(move || ingest(source_channels, prepare_tx, &stop, &first)))?);
+        threads.push(spawn(
+            "ingest".into(),
+            Box::new(move || ingest(source_channels, prepare_tx, &stop, &first)),
+        )?);
     }
     for worker in 0..config.pipeline.prepare_workers {
         let (rx, tx, preparer, stats) = (prepare_rx.clone(), work_tx.clone(), preparer.clone(), stats.clone());
-        threads.push(spawn(format!("prepare:{worker}"), Box::new(move || prepare(rx, tx, &preparer, &stats)))?);
+        threads.push(spawn(
+            format!("prepare:{worker}"),
+            Box::new(move || prepare(rx, tx, &preparer, &stats)),
+        )?);
     }
     drop((prepare_rx, work_tx));
     {
@@ -219,12 +262,18 @@ pub fn run(
     }
     for (worker, encoder) in encoders.into_iter().enumerate() {
         let (rx, tx, stats) = (batch_rx.clone(), done_tx.clone(), stats.clone());
-        threads.push(spawn(format!("encode:{worker}"), Box::new(move || encode(rx, tx, encoder, &stats)))?);
+        threads.push(spawn(
+            format!("encode:{worker}"),
+            Box::new(move || encode(rx, tx, encoder, &stats)),
+        )?);
     }
     drop((batch_rx, done_tx));
     {
         let (config, stats) = (config.clone(), stats.clone());
-        threads.push(spawn("track".into(), Box::new(move || track(done_rx, publish_tx, &config, &stats)))?);
+        threads.push(spawn(
+            "track".into(),
+            Box::new(move || track(done_rx, publish_tx, &config, &stats)),
+        )?);
     }
     let mut publisher = Publisher::new(config, session.clone(), options.lossless_publish)?;
 
@@ -274,7 +323,10 @@ pub fn run(
                     Ok(()) => {}
                     Err(e) => {
                         counters.add_publish_error();
-                        log::error!("publishing on stream '{stream}' failed ({} so far): {e}", counters.publish_errors());
+                        log::error!(
+                            "publishing on stream '{stream}' failed ({} so far): {e}",
+                            counters.publish_errors()
+                        );
                     }
                 }
             }
@@ -468,7 +520,9 @@ fn encode(rx: Receiver<Vec<Ticketed<PreparedFrame>>>, tx: Sender<Ticketed<Done>>
             Ok(encodings) => {
                 for ((ticket, frame), encoding) in batch.into_iter().zip(encodings) {
                     if !encoding.is_finite() {
-                        let rejection = frame.origin.reject("encode", "the encoder's output is not finite".into());
+                        let rejection = frame
+                            .origin
+                            .reject("encode", "the encoder's output is not finite".into());
                         if tx.send((ticket, Done::Rejected(rejection))).is_err() {
                             return;
                         }
@@ -537,7 +591,13 @@ fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant, Instant)>, c
                     tracker.rejections_logged += 1;
                     let n = tracker.rejections_logged;
                     if n <= 10 || n % 100 == 0 {
-                        log::warn!("stream '{}' frame {} rejected at {} ({n} so far): {}", r.stream, r.sequence, r.stage, r.reason);
+                        log::warn!(
+                            "stream '{}' frame {} rejected at {} ({n} so far): {}",
+                            r.stream,
+                            r.sequence,
+                            r.stage,
+                            r.reason
+                        );
                     }
                     Output::Rejected(state::Rejected {
                         schema: state::REJECTED_SCHEMA.into(),
@@ -555,7 +615,9 @@ fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant, Instant)>, c
                 }
                 Done::Encoded(frame) => {
                     let dt = match (frame.origin.sensor_stamp_ns, tracker.last_stamp_ns) {
-                        (Some(now), Some(last)) if now > last && now - last < 1_000_000_000 => (now - last) as f32 * 1e-9,
+                        (Some(now), Some(last)) if now > last && now - last < 1_000_000_000 => {
+                            (now - last) as f32 * 1e-9
+                        }
                         _ => nominal_dt,
                     };
                     if frame.origin.sensor_stamp_ns.is_some() {
@@ -571,7 +633,10 @@ fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant, Instant)>, c
         }
     }
     if !pending.is_empty() {
-        log::error!("track: {} items never reached their turn (ticket {next} missing)", pending.len());
+        log::error!(
+            "track: {} items never reached their turn (ticket {next} missing)",
+            pending.len()
+        );
     }
 }
 
@@ -704,7 +769,10 @@ fn summary_logger(finished: &AtomicBool, stats: &Stats, seconds: f64) {
             .iter()
             .map(|(name, c)| {
                 let rejected: u64 = c.rejected.values().sum();
-                format!("{name}: {} in, {} out, {} dropped, {rejected} rejected", c.received, c.published, c.dropped)
+                format!(
+                    "{name}: {} in, {} out, {} dropped, {rejected} rejected",
+                    c.received, c.published, c.dropped
+                )
             })
             .collect();
         log::info!(

@@ -51,7 +51,11 @@ impl Publisher {
             prefix: format!("{}/{}", config.node.prefix, config.node.name),
             format: config.publish.format,
             session: if config.publish.zenoh { session } else { None },
-            congestion: if lossless { CongestionControl::Block } else { CongestionControl::Drop },
+            congestion: if lossless {
+                CongestionControl::Block
+            } else {
+                CongestionControl::Drop
+            },
             publishers: HashMap::new(),
             jsonl,
         })
@@ -146,6 +150,12 @@ pub fn open_session(config: &Config) -> Result<Session, PublishError> {
     if !z.connect.is_empty() {
         set(&mut zc, "connect/endpoints", &json(&z.connect))?;
     }
-    set(&mut zc, "scouting/multicast/enabled", if z.multicast_scouting { "true" } else { "false" })?;
-    zenoh::open(zc).wait().map_err(|e| PublishError::Zenoh(format!("opening a session: {e}")))
+    set(
+        &mut zc,
+        "scouting/multicast/enabled",
+        if z.multicast_scouting { "true" } else { "false" },
+    )?;
+    zenoh::open(zc)
+        .wait()
+        .map_err(|e| PublishError::Zenoh(format!("opening a session: {e}")))
 }

@@ -126,9 +126,17 @@ impl Encoding {
     /// Every output value is finite (a NaN would poison the tracker's running estimates).
     pub fn is_finite(&self) -> bool {
         self.q.iter().all(|v| v.is_finite())
-            && [&self.x_c, &self.z_r_mean, &self.z_r_logvar, &self.z_e_mean, &self.z_e_logvar, &self.z_i_mean, &self.z_i_logvar]
-                .iter()
-                .all(|values| values.iter().all(|v| v.is_finite()))
+            && [
+                &self.x_c,
+                &self.z_r_mean,
+                &self.z_r_logvar,
+                &self.z_e_mean,
+                &self.z_e_logvar,
+                &self.z_i_mean,
+                &self.z_i_logvar,
+            ]
+            .iter()
+            .all(|values| values.iter().all(|v| v.is_finite()))
     }
 }
 

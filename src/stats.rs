@@ -51,7 +51,11 @@ impl Latencies {
         };
         LatencySummary {
             count: self.count,
-            mean_ms: if self.count > 0 { (self.sum_ms / self.count as f64) as f32 } else { 0.0 },
+            mean_ms: if self.count > 0 {
+                (self.sum_ms / self.count as f64) as f32
+            } else {
+                0.0
+            },
             p50_ms: at(0.5),
             p90_ms: at(0.9),
             p99_ms: at(0.99),
@@ -103,7 +107,12 @@ impl StreamCounters {
         self.publish_errors.load(Ordering::Relaxed)
     }
     pub fn add_rejected(&self, stage: &str) {
-        *self.rejected.lock().expect("counter lock").entry(stage.to_string()).or_default() += 1;
+        *self
+            .rejected
+            .lock()
+            .expect("counter lock")
+            .entry(stage.to_string())
+            .or_default() += 1;
     }
 }
 
@@ -141,7 +150,12 @@ impl Stats {
     }
 
     pub fn record(&self, stage: &'static str, ms: f32) {
-        self.stages.lock().expect("stats lock").entry(stage).or_default().record(ms);
+        self.stages
+            .lock()
+            .expect("stats lock")
+            .entry(stage)
+            .or_default()
+            .record(ms);
     }
 
     pub fn record_batch(&self, frames: usize) {
@@ -182,7 +196,11 @@ impl Stats {
             streams,
             stages,
             batches,
-            mean_batch: if batches > 0 { frames as f64 / batches as f64 } else { 0.0 },
+            mean_batch: if batches > 0 {
+                frames as f64 / batches as f64
+            } else {
+                0.0
+            },
         }
     }
 }

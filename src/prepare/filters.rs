@@ -47,7 +47,11 @@ pub fn fit_ground(points: &[[f32; 3]], tolerance: f32, iterations: usize, seed: 
         let Some(normal) = UnitVector::try_new((b - a).cross(&(c - a)), 1e-9) else {
             continue;
         };
-        let normal = if normal.z < 0.0 { -normal.into_inner() } else { normal.into_inner() };
+        let normal = if normal.z < 0.0 {
+            -normal.into_inner()
+        } else {
+            normal.into_inner()
+        };
         if normal.z < std::f32::consts::FRAC_1_SQRT_2 {
             continue;
         }
@@ -58,7 +62,11 @@ pub fn fit_ground(points: &[[f32; 3]], tolerance: f32, iterations: usize, seed: 
             .filter(|p| (normal.dot(&Vector3::from(**p)) - offset).abs() <= tolerance)
             .count();
         if best.is_none_or(|b| inliers > b.inliers) {
-            best = Some(Plane { normal, offset, inliers });
+            best = Some(Plane {
+                normal,
+                offset,
+                inliers,
+            });
         }
     }
     let best = best?;

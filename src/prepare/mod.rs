@@ -14,10 +14,12 @@ pub use sampling::{
     centre_and_scale, farthest_point_sampling, random_sampling, subsample, voxel_sampling, PrepareError, Sampling,
 };
 
+use std::collections::HashMap;
+
 use nalgebra::{Matrix3, Vector3};
 
 use crate::cloud::Frame;
-use crate::config::PrepareSettings;
+use crate::config::{PrepareSettings, SourceSettings};
 
 /// A frame ready for the encoder.
 #[derive(Debug, Clone)]
@@ -30,26 +32,52 @@ pub struct Prepared {
     pub points_kept: usize,
 }
 
+type Pose = (Matrix3<f32>, Vector3<f32>);
+
+fn pose(rotation: &[[f32; 3]; 3], translation: &[f32; 3]) -> Pose {
+    (Matrix3::from_fn(|i, j| rotation[i][j]), Vector3::from(*translation))
+}
+
 /// Prepares frames for one bundle; immutable and shared by the prepare workers.
 #[derive(Debug, Clone)]
 pub struct Preparer {
     settings: PrepareSettings,
-    rotation: Matrix3<f32>,
-    translation: Vector3<f32>,
+    /// Sensor -> gravity frame: `[prepare]`'s, and per stream where a source sets its own.
+    sensor_to_gravity: Pose,
+    per_stream: HashMap<String, Pose>,
     points: usize,
     model_units_per_metre: f32,
 }
 
 impl Preparer {
     pub fn new(settings: &PrepareSettings, points: usize, model_units_per_metre: f32) -> Self {
-        let r = settings.sensor_to_gravity_rotation;
         Self {
             settings: settings.clone(),
-            rotation: Matrix3::from_fn(|i, j| r[i][j]),
-            translation: Vector3::from(settings.sensor_to_gravity_translation),
+            sensor_to_gravity: pose(
+                &settings.sensor_to_gravity_rotation,
+                &settings.sensor_to_gravity_translation,
+            ),
+            per_stream: HashMap::new(),
             points,
             model_units_per_metre,
         }
+    }
+
+    /// The sources' own sensor poses, where they set one (each part falls back to `[prepare]`'s).
+    pub fn with_sources(mut self, sources: &[SourceSettings]) -> Self {
+        for source in sources {
+            if source.sensor_to_gravity_rotation.is_some() || source.sensor_to_gravity_translation.is_some() {
+                let rotation = source
+                    .sensor_to_gravity_rotation
+                    .unwrap_or(self.settings.sensor_to_gravity_rotation);
+                let translation = source
+                    .sensor_to_gravity_translation
+                    .unwrap_or(self.settings.sensor_to_gravity_translation);
+                self.per_stream
+                    .insert(source.stream.clone(), pose(&rotation, &translation));
+            }
+        }
+        self
     }
 
     pub fn prepare(&self, frame: &Frame) -> Result<Prepared, PrepareError> {
@@ -57,7 +85,8 @@ impl Preparer {
         let seed = s.seed ^ frame.sequence.wrapping_mul(0x9E37_79B9_7F4A_7C15);
         let to_metres = frame.unit.to_metres();
         let mut points: Vec<[f32; 3]> = frame.cloud.points.iter().map(|p| p.map(|c| c * to_metres)).collect();
-        transform(&mut points, &self.rotation, &self.translation);
+        let (rotation, translation) = self.per_stream.get(&frame.stream).unwrap_or(&self.sensor_to_gravity);
+        transform(&mut points, rotation, translation);
         let ground = if s.auto_ground || s.remove_ground {
             let plane = fit_ground(&points, s.ground_tolerance_m, s.ransac_iterations, seed);
             if plane.is_none() && s.auto_ground {

@@ -66,7 +66,10 @@ pub fn topics(bytes: &[u8], path: &Path) -> Result<Vec<(String, String)>, McapSo
         let mut channels: Vec<_> = summary.channels.values().collect();
         channels.sort_by_key(|c| c.id);
         for c in channels {
-            found.push((c.topic.clone(), c.schema.as_ref().map(|s| s.name.clone()).unwrap_or_default()));
+            found.push((
+                c.topic.clone(),
+                c.schema.as_ref().map(|s| s.name.clone()).unwrap_or_default(),
+            ));
         }
         return Ok(found);
     }
@@ -75,7 +78,12 @@ pub fn topics(bytes: &[u8], path: &Path) -> Result<Vec<(String, String)>, McapSo
         let Ok(message) = message else { break };
         let topic = message.channel.topic.clone();
         if !found.iter().any(|(t, _)| *t == topic) {
-            let schema = message.channel.schema.as_ref().map(|s| s.name.clone()).unwrap_or_default();
+            let schema = message
+                .channel
+                .schema
+                .as_ref()
+                .map(|s| s.name.clone())
+                .unwrap_or_default();
             found.push((topic, schema));
         }
     }
@@ -87,7 +95,11 @@ enum Wanted {
     Depth { image: String, info: String },
 }
 
-fn choose_topic(settings: &SourceSettings, topics: &[(String, String)], path: &Path) -> Result<Wanted, McapSourceError> {
+fn choose_topic(
+    settings: &SourceSettings,
+    topics: &[(String, String)],
+    path: &Path,
+) -> Result<Wanted, McapSourceError> {
     let listing = || {
         topics
             .iter()
@@ -167,7 +179,10 @@ pub fn run(settings: &SourceSettings, mut outlet: Outlet) -> Result<(), McapSour
                     Ok(m) => m,
                     Err(e) => {
                         // A damaged chunk ends this file; what was read so far has been replayed.
-                        outlet.reject(format!("{}: unreadable record, rest of file skipped: {e}", file.display()), None);
+                        outlet.reject(
+                            format!("{}: unreadable record, rest of file skipped: {e}", file.display()),
+                            None,
+                        );
                         break;
                     }
                 };
@@ -230,7 +245,10 @@ pub fn run(settings: &SourceSettings, mut outlet: Outlet) -> Result<(), McapSour
                 }
             }
             if waiting.take().is_some()
-                && !outlet.reject(format!("{}: depth image with no CameraInfo after it", file.display()), None)
+                && !outlet.reject(
+                    format!("{}: depth image with no CameraInfo after it", file.display()),
+                    None,
+                )
             {
                 return Ok(());
             }

@@ -69,7 +69,13 @@ pub struct Outlet {
 
 impl Outlet {
     /// A channel of `capacity` for one stream: the outlet, and the receiving end for the pipeline.
-    pub fn new(stream: &str, live: bool, capacity: usize, stats: Arc<Stats>, stop: Arc<AtomicBool>) -> (Self, Receiver<Ingest>) {
+    pub fn new(
+        stream: &str,
+        live: bool,
+        capacity: usize,
+        stats: Arc<Stats>,
+        stop: Arc<AtomicBool>,
+    ) -> (Self, Receiver<Ingest>) {
         let (sender, receiver) = crossbeam_channel::bounded(capacity.max(1));
         let outlet = Self {
             stream: stream.to_string(),
@@ -92,7 +98,13 @@ impl Outlet {
     }
 
     /// Sends a decoded frame. Returns false when the pipeline has shut down.
-    pub fn frame(&mut self, cloud: PointCloud, unit: Unit, sensor_stamp_ns: Option<u64>, dropped_non_finite: usize) -> bool {
+    pub fn frame(
+        &mut self,
+        cloud: PointCloud,
+        unit: Unit,
+        sensor_stamp_ns: Option<u64>,
+        dropped_non_finite: usize,
+    ) -> bool {
         let frame = Frame {
             stream: self.stream.clone(),
             sequence: self.next_sequence(),
@@ -103,7 +115,9 @@ impl Outlet {
             cloud,
         };
         if dropped_non_finite > 0 {
-            self.stats.stream(&self.stream).add_non_finite(dropped_non_finite as u64);
+            self.stats
+                .stream(&self.stream)
+                .add_non_finite(dropped_non_finite as u64);
         }
         self.send(Ingest::Frame(frame))
     }

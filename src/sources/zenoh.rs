@@ -80,7 +80,10 @@ pub fn decode_sample(sample: &Sample, format: WireFormat, max_points: usize) -> 
 /// float32 little-endian x, y, z triplets; non-finite points dropped and counted.
 pub fn decode_depthai(payload: &[u8], max_points: usize) -> Result<(Vec<[f32; 3]>, usize), String> {
     if payload.len() % 12 != 0 {
-        return Err(format!("{} bytes is not a whole number of float32 x, y, z triplets", payload.len()));
+        return Err(format!(
+            "{} bytes is not a whole number of float32 x, y, z triplets",
+            payload.len()
+        ));
     }
     let count = payload.len() / 12;
     if count > max_points {

@@ -24,7 +24,10 @@ fn the_default_config_replays_the_sample_with_the_shipped_bundle() {
     assert!(config.model.bundle.join("manifest.json").is_file());
     let source = &config.sources[0];
     assert_eq!(source.kind, SourceKind::Mcap);
-    assert!(source.path.as_ref().unwrap().is_file(), "relative paths resolve against the config's folder");
+    assert!(
+        source.path.as_ref().unwrap().is_file(),
+        "relative paths resolve against the config's folder"
+    );
     assert!(config.publish.zenoh && config.zenoh.mode == "peer" && config.zenoh.connect.is_empty());
 }
 
@@ -69,11 +72,18 @@ fn bad_values_are_refused_with_the_key_named() {
             "two sources",
         ),
         ("[node]\nname = \"\"\n", "node.name"),
+        (
+            "[[source]]\nstream = \"a\"\nkind = \"files\"\npath = \"x\"\nsensor_to_gravity_rotation = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]\n",
+            "source[0] ('a') sensor_to_gravity_rotation",
+        ),
     ];
     for (text, expected) in cases {
         let config = Config::parse(text).unwrap();
         let error = config.validate().unwrap_err();
-        assert!(error.contains(expected), "{text:?}: '{error}' should mention {expected}");
+        assert!(
+            error.contains(expected),
+            "{text:?}: '{error}' should mention {expected}"
+        );
     }
 }
 

@@ -118,13 +118,23 @@ fn pcd_written_by_pypcd4_in_all_three_encodings() {
     for encoding in ["ascii", "binary", "binary_compressed"] {
         let path = fixtures.join(format!("pypcd4_{encoding}.pcd"));
         let read = read_cloud(&path, &FileOptions::default()).unwrap_or_else(|e| panic!("{e}"));
-        assert_eq!(read.cloud.len() as u64, expected["points"].as_u64().unwrap(), "{encoding}");
-        assert_eq!(read.dropped_non_finite as u64, expected["dropped_non_finite"].as_u64().unwrap());
+        assert_eq!(
+            read.cloud.len() as u64,
+            expected["points"].as_u64().unwrap(),
+            "{encoding}"
+        );
+        assert_eq!(
+            read.dropped_non_finite as u64,
+            expected["dropped_non_finite"].as_u64().unwrap()
+        );
         for axis in 0..3 {
             let sum: f64 = read.cloud.points.iter().map(|p| p[axis] as f64).sum();
             let want = expected["sum"][axis].as_f64().unwrap();
             assert!((sum - want).abs() < 1e-3, "{encoding} axis {axis}: {sum} vs {want}");
-            assert_eq!(read.cloud.points[0][axis], expected["first"][axis].as_f64().unwrap() as f32);
+            assert_eq!(
+                read.cloud.points[0][axis],
+                expected["first"][axis].as_f64().unwrap() as f32
+            );
         }
     }
 }
@@ -139,18 +149,28 @@ fn ply_and_obj_meshes_written_by_trimesh_are_sampled_over_their_surface() {
     let options = FileOptions::default();
     for name in ["trimesh_ascii.ply", "trimesh_binary.ply", "trimesh.obj"] {
         let read = read_cloud(&fixtures.join(name), &options).unwrap_or_else(|e| panic!("{e}"));
-        assert_eq!(read.cloud.len(), options.mesh_samples, "{name}: surface samples, not the 642 vertices");
+        assert_eq!(
+            read.cloud.len(),
+            options.mesh_samples,
+            "{name}: surface samples, not the 642 vertices"
+        );
         let mut mean = [0.0f32; 3];
         for p in &read.cloud.points {
             let distance = (0..3).map(|a| (p[a] - centre[a]).powi(2)).sum::<f32>().sqrt();
             // Flat faces of a subdivision-3 icosphere lie within 1.5 % inside the sphere.
-            assert!(distance <= radius * 1.0001 && distance >= radius * 0.98, "{name}: {distance}");
+            assert!(
+                distance <= radius * 1.0001 && distance >= radius * 0.98,
+                "{name}: {distance}"
+            );
             for a in 0..3 {
                 mean[a] += p[a] / read.cloud.len() as f32;
             }
         }
         for a in 0..3 {
-            assert!((mean[a] - centre[a]).abs() < 0.01, "{name}: area-weighted samples centre on the sphere");
+            assert!(
+                (mean[a] - centre[a]).abs() < 0.01,
+                "{name}: area-weighted samples centre on the sphere"
+            );
         }
     }
 }

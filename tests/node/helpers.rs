@@ -54,7 +54,9 @@ pub fn test_config(node: &str, endpoint: &str) -> Config {
 /// A second zenoh peer connected to `endpoint`.
 pub fn client_session(endpoint: &str) -> zenoh::Session {
     let mut config = zenoh::Config::default();
-    config.insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]")).unwrap();
+    config
+        .insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
+        .unwrap();
     config.insert_json5("scouting/multicast/enabled", "false").unwrap();
     zenoh::open(config).wait().unwrap()
 }

@@ -29,7 +29,15 @@ fn replay(mut config: Config) -> (RunSummary, Vec<serde_json::Value>) {
     config.validate().unwrap();
     let bundle = Bundle::load(&config.model.bundle).unwrap();
     let stop = Arc::new(AtomicBool::new(false));
-    let summary = pipeline::run(&config, &bundle, None, stop, Arc::new(Stats::default()), RunOptions::default()).unwrap();
+    let summary = pipeline::run(
+        &config,
+        &bundle,
+        None,
+        stop,
+        Arc::new(Stats::default()),
+        RunOptions::default(),
+    )
+    .unwrap();
     let lines = std::fs::read_to_string(&jsonl)
         .unwrap()
         .lines()
@@ -56,7 +64,10 @@ fn bad_files_are_rejected_with_their_reason_and_the_good_ones_still_encode() {
     .unwrap();
 
     let mut config = test_config("files", "tcp/127.0.0.1:0");
-    config.sources = vec![source(&format!("stream = \"f\"\nkind = \"files\"\npath = {:?}", dir.path().display().to_string()))];
+    config.sources = vec![source(&format!(
+        "stream = \"f\"\nkind = \"files\"\npath = {:?}",
+        dir.path().display().to_string()
+    ))];
     let (summary, lines) = replay(config);
     let counters = &summary.snapshot.streams["f"];
     assert_eq!((counters.received, counters.published), (6, 2), "{counters:?}");
@@ -69,17 +80,21 @@ fn bad_files_are_rejected_with_their_reason_and_the_good_ones_still_encode() {
             serde_json::from_value::<State>(line.clone()).unwrap();
         } else {
             let rejected: Rejected = serde_json::from_value(line.clone()).unwrap();
-            assert!(rejected.reason.contains(what), "frame {index}: '{}' should name the {what} file", rejected.reason);
+            assert!(
+                rejected.reason.contains(what),
+                "frame {index}: '{}' should name the {what} file",
+                rejected.reason
+            );
         }
     }
 }
 
 #[test]
 fn depth_images_in_a_recording_are_unprojected_with_their_camera_info() {
+    use gdvae_sim::family::Family;
     use gdvae_sim::motion::{MotionKind, MotionSpec};
     use gdvae_sim::recording::{write_recording, RecordingOptions, DEPTH_TOPIC};
     use gdvae_sim::scenario::{Scenario, ViewSpec};
-    use gdvae_sim::family::Family;
 
     let spec = MotionSpec {
         families: vec![Family::Quadruped],
@@ -99,7 +114,16 @@ fn depth_images_in_a_recording_are_unprojected_with_their_camera_info() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("depth.mcap");
     let scenario = Scenario::new(spec, view).unwrap();
-    write_recording(&scenario, &path, RecordingOptions { depth_images: true, compression: true }, |_, _| {}).unwrap();
+    write_recording(
+        &scenario,
+        &path,
+        RecordingOptions {
+            depth_images: true,
+            compression: true,
+        },
+        |_, _| {},
+    )
+    .unwrap();
 
     let mut config = test_config("depth", "tcp/127.0.0.1:0");
     config.prepare = Config::load(&repo().join("config/replay.toml")).unwrap().prepare;
@@ -115,7 +139,12 @@ fn depth_images_in_a_recording_are_unprojected_with_their_camera_info() {
     assert_eq!(summary.snapshot.streams["points"].published, 15);
     let states: Vec<State> = lines.into_iter().map(|l| serde_json::from_value(l).unwrap()).collect();
     for sequence in 0..15u64 {
-        let of = |stream: &str| states.iter().find(|s| s.stream == stream && s.sequence == sequence).unwrap();
+        let of = |stream: &str| {
+            states
+                .iter()
+                .find(|s| s.stream == stream && s.sequence == sequence)
+                .unwrap()
+        };
         let (depth, points) = (of("depth"), of("points"));
         // The recorded cloud is the depth image unprojected every `decimation` pixels, so the two
         // streams see the same points.
@@ -154,7 +183,9 @@ fn a_live_outlet_drops_its_oldest_frame_and_a_replay_outlet_waits() {
     });
     std::thread::sleep(Duration::from_millis(100));
     assert!(!producer.is_finished(), "a replay outlet waits for the pipeline");
-    let got: Vec<_> = (0..5).map(|_| receiver.recv_timeout(Duration::from_secs(5)).unwrap()).collect();
+    let got: Vec<_> = (0..5)
+        .map(|_| receiver.recv_timeout(Duration::from_secs(5)).unwrap())
+        .collect();
     producer.join().unwrap();
     assert_eq!(got.len(), 5);
     assert_eq!(stats.snapshot().streams["replay"].dropped, 0);
@@ -199,16 +230,30 @@ fn sigint_drains_and_the_binary_exits_zero() {
         .spawn()
         .unwrap();
     let lines = || std::fs::read_to_string(&jsonl).map(|t| t.lines().count()).unwrap_or(0);
-    assert!(wait_until(Duration::from_secs(60), || lines() >= 5), "the node publishes");
-    let status = std::process::Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
+    assert!(
+        wait_until(Duration::from_secs(60), || lines() >= 5),
+        "the node publishes"
+    );
+    let status = std::process::Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
     assert!(status.success());
     let started = std::time::Instant::now();
     let output = child.wait_with_output().unwrap();
     assert!(started.elapsed() < Duration::from_secs(30));
     let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(output.status.success(), "exit {:?}: {}", output.status, String::from_utf8_lossy(&output.stderr));
+    assert!(
+        output.status.success(),
+        "exit {:?}: {}",
+        output.status,
+        String::from_utf8_lossy(&output.stderr)
+    );
     // The summary's counts agree with what was written: every frame taken in was published.
-    let row = stdout.lines().find(|l| l.trim_start().starts_with("m ")).expect("a summary row");
+    let row = stdout
+        .lines()
+        .find(|l| l.trim_start().starts_with("m "))
+        .expect("a summary row");
     let numbers: Vec<u64> = row.split_whitespace().filter_map(|w| w.parse().ok()).collect();
     let (received, published) = (numbers[0], numbers[1]);
     assert_eq!(received, published, "{row}");

@@ -44,13 +44,24 @@ fn start(
     let (s, st) = (stop.clone(), stats.clone());
     let handle = std::thread::spawn(move || {
         let bundle = Bundle::load(&config.model.bundle).unwrap();
-        pipeline::run(&config, &bundle, Some(session), s, st, RunOptions { lossless_publish: true }).unwrap()
+        pipeline::run(
+            &config,
+            &bundle,
+            Some(session),
+            s,
+            st,
+            RunOptions { lossless_publish: true },
+        )
+        .unwrap()
     });
     (stop, stats, handle)
 }
 
 fn join_within(handle: std::thread::JoinHandle<RunSummary>, timeout: Duration) -> RunSummary {
-    assert!(wait_until(timeout, || handle.is_finished()), "the pipeline did not finish within {timeout:?}");
+    assert!(
+        wait_until(timeout, || handle.is_finished()),
+        "the pipeline did not finish within {timeout:?}"
+    );
     handle.join().unwrap()
 }
 
@@ -89,9 +100,15 @@ fn replaying_the_sample_publishes_every_frame_in_order_on_zenoh() {
         let state: State = serde_json::from_slice(payload).unwrap();
         assert_eq!(state.schema, STATE_SCHEMA);
         assert_eq!(state.sequence, index as u64, "in order, none missing");
-        assert_eq!((state.raw.z_i.len(), state.shape.z_i.len(), state.raw.z_e.len()), (sizes.z_i, sizes.z_i, sizes.z_e));
+        assert_eq!(
+            (state.raw.z_i.len(), state.shape.z_i.len(), state.raw.z_e.len()),
+            (sizes.z_i, sizes.z_i, sizes.z_e)
+        );
         assert!(state.stamps.sensor_ns.is_some() && state.stamps.publish_ns >= state.stamps.ingest_ns);
-        assert!(state.points.kept > 500 && state.points.kept < state.points.received, "crop keeps the subject");
+        assert!(
+            state.points.kept > 500 && state.points.kept < state.points.received,
+            "crop keeps the subject"
+        );
         let norm: f32 = state.filtered.q.iter().map(|c| c * c).sum::<f32>().sqrt();
         assert!((norm - 1.0).abs() < 1e-3);
     }
@@ -109,13 +126,21 @@ fn stop_drains_the_frames_in_flight_and_status_answers_while_running() {
     let client = client_session(&endpoint);
     let (stop, stats, handle) = start(config, node);
     assert!(
-        wait_until(Duration::from_secs(60), || stats.snapshot().streams.get("meshes").is_some_and(|s| s.published >= 10)),
+        wait_until(Duration::from_secs(60), || stats
+            .snapshot()
+            .streams
+            .get("meshes")
+            .is_some_and(|s| s.published >= 10)),
         "states are published"
     );
 
     let mut status = None;
     assert!(wait_until(Duration::from_secs(20), || {
-        let replies = client.get("gdvae/drain/status").timeout(Duration::from_secs(2)).wait().unwrap();
+        let replies = client
+            .get("gdvae/drain/status")
+            .timeout(Duration::from_secs(2))
+            .wait()
+            .unwrap();
         if let Ok(reply) = replies.recv() {
             if let Ok(sample) = reply.result() {
                 status = serde_json::from_slice::<serde_json::Value>(&sample.payload().to_bytes()).ok();
@@ -133,7 +158,11 @@ fn stop_drains_the_frames_in_flight_and_status_answers_while_running() {
     let counters = &summary.snapshot.streams["meshes"];
     let rejected: u64 = counters.rejected.values().sum();
     assert_eq!(counters.dropped, 0);
-    assert_eq!(counters.received, counters.published + rejected, "every frame taken in was finished: {counters:?}");
+    assert_eq!(
+        counters.received,
+        counters.published + rejected,
+        "every frame taken in was finished: {counters:?}"
+    );
 }
 
 #[test]
@@ -154,8 +183,14 @@ fn zenoh_sources_decode_cdr_and_depthai_and_count_what_they_reject() {
         .unwrap()
         .data
         .to_vec();
-    let points = gdvae_node::sources::ros2::decode_point_cloud2(&cdr, 1 << 22).unwrap().points;
-    let millimetres: Vec<u8> = points.iter().flat_map(|p| p.map(|c| c * 1000.0)).flat_map(f32::to_le_bytes).collect();
+    let points = gdvae_node::sources::ros2::decode_point_cloud2(&cdr, 1 << 22)
+        .unwrap()
+        .points;
+    let millimetres: Vec<u8> = points
+        .iter()
+        .flat_map(|p| p.map(|c| c * 1000.0))
+        .flat_map(f32::to_le_bytes)
+        .collect();
 
     let node = gdvae_node::publish::open_session(&config).unwrap();
     let client = client_session(&endpoint);
@@ -165,7 +200,11 @@ fn zenoh_sources_decode_cdr_and_depthai_and_count_what_they_reject() {
     let ros = client.declare_publisher("test/ros/points").wait().unwrap();
     let oak = client.declare_publisher("test/oak/points").wait().unwrap();
     // Subscriptions are declared by the pipeline: wait until they reach the client.
-    assert!(wait_until(Duration::from_secs(20), || ros.matching_status().wait().unwrap().matching()
+    assert!(wait_until(Duration::from_secs(20), || ros
+        .matching_status()
+        .wait()
+        .unwrap()
+        .matching()
         && oak.matching_status().wait().unwrap().matching()));
 
     let cdr_encoding = Encoding::APPLICATION_CDR.with_schema("sensor_msgs/msg/PointCloud2");
@@ -175,15 +214,23 @@ fn zenoh_sources_decode_cdr_and_depthai_and_count_what_they_reject() {
         .attachment(br#"{"stamp_nanos": 42}"#.to_vec())
         .wait()
         .unwrap();
-    ros.put(b"hello".to_vec()).encoding(Encoding::TEXT_PLAIN).wait().unwrap();
-    ros.put(cdr[..cdr.len() / 2].to_vec()).encoding(cdr_encoding).wait().unwrap();
+    ros.put(b"hello".to_vec())
+        .encoding(Encoding::TEXT_PLAIN)
+        .wait()
+        .unwrap();
+    ros.put(cdr[..cdr.len() / 2].to_vec())
+        .encoding(cdr_encoding)
+        .wait()
+        .unwrap();
     oak.put(millimetres[..millimetres.len() - 5].to_vec())
         .encoding(Encoding::APPLICATION_OCTET_STREAM.with_schema(gdvae_node::sources::zenoh::DEPTHAI_SCHEMA))
         .wait()
         .unwrap();
 
     let done = |s: &gdvae_node::stats::Snapshot, name: &str, n: u64| {
-        s.streams.get(name).is_some_and(|c| c.published + c.rejected.values().sum::<u64>() >= n)
+        s.streams
+            .get(name)
+            .is_some_and(|c| c.published + c.rejected.values().sum::<u64>() >= n)
     };
     assert!(
         wait_until(Duration::from_secs(30), || {
@@ -227,6 +274,16 @@ fn zenoh_sources_decode_cdr_and_depthai_and_count_what_they_reject() {
         .filter(|(k, _)| k.ends_with("/rejected"))
         .map(|(_, p)| serde_json::from_slice(p).unwrap())
         .collect();
-    assert!(reasons.iter().any(|r| r.stream == "ros" && r.reason.contains("unknown encoding")), "{reasons:?}");
-    assert!(reasons.iter().any(|r| r.stream == "oak" && r.reason.contains("triplets")), "{reasons:?}");
+    assert!(
+        reasons
+            .iter()
+            .any(|r| r.stream == "ros" && r.reason.contains("unknown encoding")),
+        "{reasons:?}"
+    );
+    assert!(
+        reasons
+            .iter()
+            .any(|r| r.stream == "oak" && r.reason.contains("triplets")),
+        "{reasons:?}"
+    );
 }

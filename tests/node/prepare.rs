@@ -3,7 +3,9 @@
 
 use gdvae_node::cloud::{Frame, PointCloud, Unit};
 use gdvae_node::config::{OutlierMethod, OutlierSettings, PrepareSettings};
-use gdvae_node::prepare::{crop, fit_ground, levelling, remove_outliers, remove_plane, transform, PrepareError, Preparer};
+use gdvae_node::prepare::{
+    crop, fit_ground, levelling, remove_outliers, remove_plane, transform, PrepareError, Preparer,
+};
 use nalgebra::{Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -12,11 +14,19 @@ use rand_chacha::ChaCha8Rng;
 fn scene(rng: &mut ChaCha8Rng) -> (Vec<[f32; 3]>, usize) {
     let mut points = Vec::new();
     for _ in 0..2500 {
-        points.push([rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-0.005..0.005)]);
+        points.push([
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-0.005..0.005),
+        ]);
     }
     let floor = points.len();
     for _ in 0..1500 {
-        points.push([rng.random_range(-0.2..0.2), rng.random_range(-0.2..0.2), rng.random_range(0.1..0.5)]);
+        points.push([
+            rng.random_range(-0.2..0.2),
+            rng.random_range(-0.2..0.2),
+            rng.random_range(0.1..0.5),
+        ]);
     }
     (points, floor)
 }
@@ -30,12 +40,23 @@ fn ransac_finds_a_tilted_ground_and_levelling_puts_it_at_z_zero() {
     transform(&mut points, &tilt, &Vector3::new(0.0, 0.0, 1.0));
     let plane = fit_ground(&points, 0.02, 100, 7).expect("a ground plane");
     let expected = tilt * Vector3::z();
-    assert!(plane.normal.dot(&expected) > 0.999, "normal {:?} vs {expected:?}", plane.normal);
-    assert!(plane.inliers >= 2400 && plane.inliers <= 2600, "{} inliers", plane.inliers);
+    assert!(
+        plane.normal.dot(&expected) > 0.999,
+        "normal {:?} vs {expected:?}",
+        plane.normal
+    );
+    assert!(
+        plane.inliers >= 2400 && plane.inliers <= 2600,
+        "{} inliers",
+        plane.inliers
+    );
     let (rotation, translation) = levelling(&plane);
     transform(&mut points, &rotation, &translation);
     let floor_heights: Vec<f32> = points[..2500].iter().map(|p| p[2]).collect();
-    assert!(floor_heights.iter().all(|z| z.abs() < 0.02), "the floor is at z = 0 after levelling");
+    assert!(
+        floor_heights.iter().all(|z| z.abs() < 0.02),
+        "the floor is at z = 0 after levelling"
+    );
     let again = fit_ground(&points, 0.02, 100, 7).unwrap();
     remove_plane(&mut points, &again, 0.02);
     assert_eq!(points.len(), 1500, "only the object is left");
@@ -46,7 +67,11 @@ fn no_ground_in_a_cloud_without_one() {
     let mut rng = ChaCha8Rng::seed_from_u64(2);
     let ball: Vec<[f32; 3]> = (0..2000)
         .map(|_| {
-            let v = Vector3::new(rng.random_range(-1.0f32..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+            let v = Vector3::new(
+                rng.random_range(-1.0f32..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            );
             let v = v.normalize();
             [v.x, v.y, v.z]
         })
@@ -70,7 +95,11 @@ fn both_outlier_filters_remove_isolated_points_and_keep_the_surface() {
         .collect();
     let surface = points.len();
     for _ in 0..10 {
-        points.push([rng.random_range(1.0..2.0), rng.random_range(1.0..2.0), rng.random_range(1.0..2.0)]);
+        points.push([
+            rng.random_range(1.0..2.0),
+            rng.random_range(1.0..2.0),
+            rng.random_range(1.0..2.0),
+        ]);
     }
     for method in [OutlierMethod::Statistical, OutlierMethod::Radius] {
         let mut cleaned = points.clone();
@@ -85,7 +114,11 @@ fn both_outlier_filters_remove_isolated_points_and_keep_the_surface() {
         assert!(cleaned.iter().all(|p| p[2] == 0.0));
     }
     let mut untouched = points.clone();
-    assert_eq!(remove_outliers(&mut untouched, &OutlierSettings::default()), 0, "method none");
+    assert_eq!(
+        remove_outliers(&mut untouched, &OutlierSettings::default()),
+        0,
+        "method none"
+    );
 }
 
 #[test]
@@ -118,13 +151,70 @@ fn the_preparer_converts_units_levels_crops_and_rejects_too_few_points() {
         values.clone().fold(f32::MIN, f32::max) - values.fold(f32::MAX, f32::min)
     };
     for axis in 0..3 {
-        assert!((extent(axis) - 0.8).abs() < 0.05, "axis {axis}: extent {}", extent(axis));
+        assert!(
+            (extent(axis) - 0.8).abs() < 0.05,
+            "axis {axis}: extent {}",
+            extent(axis)
+        );
     }
     assert!((prepared.centre_m[2] - 0.3).abs() < 0.02);
-    let again = preparer.prepare(&frame(points.iter().map(|p| p.map(|c| c * 1000.0)).collect(), Unit::Millimetre)).unwrap();
-    assert_eq!(again.points, prepared.points, "deterministic for a seed and sequence number");
+    let again = preparer
+        .prepare(&frame(
+            points.iter().map(|p| p.map(|c| c * 1000.0)).collect(),
+            Unit::Millimetre,
+        ))
+        .unwrap();
+    assert_eq!(
+        again.points, prepared.points,
+        "deterministic for a seed and sequence number"
+    );
 
     let sparse = frame(points[2500..2510].to_vec(), Unit::Metre);
     let plain = Preparer::new(&PrepareSettings::default(), 256, 2.0);
-    assert_eq!(plain.prepare(&sparse).unwrap_err(), PrepareError::TooFewPoints { got: 10, minimum: 64 });
+    assert_eq!(
+        plain.prepare(&sparse).unwrap_err(),
+        PrepareError::TooFewPoints { got: 10, minimum: 64 }
+    );
+}
+
+#[test]
+fn a_source_can_carry_its_own_sensor_pose() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (points, _) = scene(&mut rng);
+    let sources: Vec<gdvae_node::config::SourceSettings> = [
+        "stream = \"a\"\nkind = \"files\"\npath = \"x\"",
+        "stream = \"b\"\nkind = \"files\"\npath = \"x\"\nsensor_to_gravity_translation = [0.0, 0.0, 1.0]",
+    ]
+    .iter()
+    .map(|t| toml::from_str(t).unwrap())
+    .collect();
+    let preparer = Preparer::new(&PrepareSettings::default(), 256, 1.0).with_sources(&sources);
+    let frame = |stream: &str| Frame {
+        stream: stream.into(),
+        sequence: 0,
+        sensor_stamp_ns: None,
+        ingested: std::time::Instant::now(),
+        ingest_unix_ns: 0,
+        unit: Unit::Metre,
+        cloud: PointCloud { points: points.clone() },
+    };
+    let a = preparer.prepare(&frame("a")).unwrap();
+    let b = preparer.prepare(&frame("b")).unwrap();
+    assert!(
+        (b.centre_m[2] - a.centre_m[2] - 1.0).abs() < 1e-5,
+        "{:?} vs {:?}",
+        a.centre_m,
+        b.centre_m
+    );
+    let largest = a
+        .points
+        .iter()
+        .flatten()
+        .zip(b.points.iter().flatten())
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max);
+    assert!(
+        largest < 1e-5,
+        "only the pose differs: the centred clouds agree to {largest}"
+    );
 }

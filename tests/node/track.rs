@@ -42,17 +42,39 @@ fn fused_shape_converges_and_its_variance_shrinks() {
         let update = filter.update(&mean, &log_variance);
         assert!(update.inlier && update.change.is_none());
         floored.update(&mean, &log_variance);
-        let rms = (filter.mean().iter().zip(&truth).map(|(m, t)| (m - t).powi(2)).sum::<f32>() / DIMENSIONS as f32).sqrt();
+        let rms = (filter
+            .mean()
+            .iter()
+            .zip(&truth)
+            .map(|(m, t)| (m - t).powi(2))
+            .sum::<f32>()
+            / DIMENSIONS as f32)
+            .sqrt();
         errors.push(rms);
         variances.push(filter.variance()[0]);
     }
     assert!(errors[0] > 0.03, "one frame carries the frame noise ({})", errors[0]);
-    assert!(errors[99] < 0.012, "100 frames average it out: rms {} (sigma / sqrt(100) = 0.005)", errors[99]);
+    assert!(
+        errors[99] < 0.012,
+        "100 frames average it out: rms {} (sigma / sqrt(100) = 0.005)",
+        errors[99]
+    );
     // The product of 100 Gaussians of variance 0.0025 has variance 0.0025 / 100.
-    assert!((variances[99] / 2.5e-5 - 1.0).abs() < 0.01, "variance {} -> {}", variances[0], variances[99]);
-    assert!(variances.windows(2).all(|w| w[1] < w[0]), "the variance shrinks with every frame");
+    assert!(
+        (variances[99] / 2.5e-5 - 1.0).abs() < 0.01,
+        "variance {} -> {}",
+        variances[0],
+        variances[99]
+    );
+    assert!(
+        variances.windows(2).all(|w| w[1] < w[0]),
+        "the variance shrinks with every frame"
+    );
     let floor = TrackSettings::default().min_shape_variance;
-    assert!((floored.variance()[0] - floor).abs() < 1e-9, "never below min_shape_variance");
+    assert!(
+        (floored.variance()[0] - floor).abs() < 1e-9,
+        "never below min_shape_variance"
+    );
     assert_eq!(filter.frames_fused(), 100);
     assert!((filter.confidence() - 1.0).abs() < 1e-6);
 }
@@ -75,10 +97,22 @@ fn an_identity_switch_is_detected_within_switch_frames() {
         }
     }
     let detected_at = detected_at.expect("the switch must be detected");
-    assert_eq!(detected_at + 1, settings.switch_frames, "detected on the switch_frames-th frame of the new object");
+    assert_eq!(
+        detected_at + 1,
+        settings.switch_frames,
+        "detected on the switch_frames-th frame of the new object"
+    );
     assert_eq!(filter.identity(), 1, "exactly one change");
-    let error = filter.mean().iter().zip(&second).map(|(m, t)| (m - t).abs()).fold(0.0, f32::max);
-    assert!(error < 0.05, "after the switch the filter tracks the new object (max error {error})");
+    let error = filter
+        .mean()
+        .iter()
+        .zip(&second)
+        .map(|(m, t)| (m - t).abs())
+        .fold(0.0, f32::max);
+    assert!(
+        error < 0.05,
+        "after the switch the filter tracks the new object (max error {error})"
+    );
 }
 
 #[test]
@@ -120,7 +154,10 @@ fn pose_smoothing_lags_a_moving_pose_by_a_bounded_amount_and_calms_a_still_one()
         }
         (last_raw, last_filtered) = (x, pose.z_e[0]);
     }
-    assert!(filtered_jitter < 0.5 * raw_jitter, "jitter {filtered_jitter} vs raw {raw_jitter}");
+    assert!(
+        filtered_jitter < 0.5 * raw_jitter,
+        "jitter {filtered_jitter} vs raw {raw_jitter}"
+    );
     // Moving at 1 unit/s: after settling the filter lags by a bounded amount.
     let mut lag = 0.0;
     for step in 0..90 {
@@ -128,7 +165,11 @@ fn pose_smoothing_lags_a_moving_pose_by_a_bounded_amount_and_calms_a_still_one()
         let pose = filter.update([1.0, 0.0, 0.0, 0.0], &[x], dt);
         lag = x - pose.z_e[0];
     }
-    assert!(lag > 0.0 && lag < 0.25, "lag {lag} units = {:.0} ms at 1 unit/s", lag * 1000.0);
+    assert!(
+        lag > 0.0 && lag < 0.25,
+        "lag {lag} units = {:.0} ms at 1 unit/s",
+        lag * 1000.0
+    );
     // Without smoothing the filtered value is the raw value.
     let mut none = PoseFilter::new(&TrackSettings {
         smoothing: Smoothing::None,
@@ -157,7 +198,11 @@ fn quaternion_sign_is_continuous_and_yaw_unwraps_over_turns() {
             assert!(dot > 0.0, "step {step}: sign flipped");
         }
         last_q = Some(pose.q_raw);
-        assert!((pose.yaw_raw - angle).abs() < 1e-3, "step {step}: yaw {} vs {angle}", pose.yaw_raw);
+        assert!(
+            (pose.yaw_raw - angle).abs() < 1e-3,
+            "step {step}: yaw {} vs {angle}",
+            pose.yaw_raw
+        );
         last_yaw = Some(pose.yaw_raw);
     }
     assert!((last_yaw.unwrap() - 6.0 * std::f32::consts::PI).abs() < 1e-3);
