@@ -189,41 +189,11 @@ pub fn run(
     let (publish_tx, publish_rx) = bounded::<(Output, Instant, Instant)>(queue);
     let queues = Arc::new(Queues {
         channels: vec![
-            (
-                "prepare",
-                Box::new({
-                    let r = prepare_rx.clone();
-                    move || r.len()
-                }) as Box<dyn Fn() -> usize + Send + Sync>,
-            ),
-            (
-                "batch",
-                Box::new({
-                    let r = work_rx.clone();
-                    move || r.len()
-                }),
-            ),
-            (
-                "encode",
-                Box::new({
-                    let r = batch_rx.clone();
-                    move || r.len()
-                }),
-            ),
-            (
-                "track",
-                Box::new({
-                    let r = done_rx.clone();
-                    move || r.len()
-                }),
-            ),
-            (
-                "publish",
-                Box::new({
-                    let r = publish_rx.clone();
-                    move || r.len()
-                }),
-            ),
+            ("prepare", depth_of(&prepare_rx)),
+            ("batch", depth_of(&work_rx)),
+            ("encode", depth_of(&batch_rx)),
+            ("track", depth_of(&done_rx)),
+            ("publish", depth_of(&publish_rx)),
         ],
     });
 
@@ -354,8 +324,16 @@ pub fn run(
     })
 }
 
+type Depth = Box<dyn Fn() -> usize + Send + Sync>;
+
+/// How many items wait in a channel, read by the status queryable.
+fn depth_of<T: Send + 'static>(receiver: &Receiver<T>) -> Depth {
+    let receiver = receiver.clone();
+    Box::new(move || receiver.len())
+}
+
 struct Queues {
-    channels: Vec<(&'static str, Box<dyn Fn() -> usize + Send + Sync>)>,
+    channels: Vec<(&'static str, Depth)>,
 }
 
 impl Queues {
