@@ -587,7 +587,7 @@ fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant, Instant)>, c
                         stamps: state::Stamps {
                             sensor_ns: r.sensor_stamp_ns,
                             ingest_ns: r.ingest_unix_ns,
-                            publish_ns: unix_now_ns(),
+                            publish_ns: 0, // stamped by the publisher
                         },
                     })
                 }
@@ -643,13 +643,13 @@ fn state_of(node: &str, frame: &EncodedFrame, tracker: &mut StreamTracker, dt: f
         stamps: state::Stamps {
             sensor_ns: frame.origin.sensor_stamp_ns,
             ingest_ns: frame.origin.ingest_unix_ns,
-            publish_ns: unix_now_ns(),
+            publish_ns: 0, // stamped by the publisher
         },
         latency: state::StageLatency {
             prepare_ms: frame.prepare_ms,
             queue_ms: frame.queue_ms,
             encode_ms: frame.encode_ms,
-            total_ms: ms_since(frame.origin.ingested),
+            total_ms: 0.0, // measured by the publisher
         },
         points: state::Points {
             received: frame.origin.points_received,
