@@ -136,18 +136,28 @@ def pairwise_mean(values: torch.Tensor, copies: int, distance) -> torch.Tensor:
 
 
 def ae_loss(model: Autoencoder, canonical_points: torch.Tensor, generator=None,
-            rotation_only: bool = False) -> tuple[AELosses, AEOutput]:
+            rotation_only: bool = False, views: torch.Tensor | None = None) -> tuple[AELosses, AEOutput]:
     """One training step's loss on a batch of canonical point clouds [B, N, 3].
 
     Each shape is copied N_R times under independent random rotations (copy-major layout).
-    `rotation_only` trains E_r alone (the supervised pretraining phase).
+    `rotation_only` trains E_r alone (the supervised pretraining phase). `views` [N_R * B, N, 3]:
+    what each copy shows the encoder instead of the whole cloud (e.g. partial views, canonical
+    frame); the reconstruction target stays the whole cloud. Supervised AEs only.
     """
     config = model.config
     copies = config.copies
     batch = len(canonical_points)
     rotations = random_rotation_matrices(copies * batch, generator, config.full_rotations, canonical_points.device)
     targets = canonical_points.repeat(copies, 1, 1)
-    inputs = rotate(targets, rotations)
+    observed = rotate(targets, rotations)
+    if views is None:
+        inputs = observed
+    elif not config.supervised:
+        raise ValueError("partial views need the supervised AE (its target is the whole canonical cloud)")
+    elif views.shape[0] != copies * batch:
+        raise ValueError(f"views has {views.shape[0]} clouds for {copies} copies of {batch} shapes")
+    else:
+        inputs = rotate(views, rotations)
     parts: dict[str, float] = {}
 
     q = model.encode_rotation(inputs)
@@ -171,7 +181,7 @@ def ae_loss(model: Autoencoder, canonical_points: torch.Tensor, generator=None,
     parts["reconstruction"] = float(reconstruction.detach())
     total = rotation_loss + reconstruction
     if pose_aware_code is not None:
-        pose_aware = config.gamma_pose_aware * reconstruction_distance(config, inputs, model.decode(pose_aware_code))
+        pose_aware = config.gamma_pose_aware * reconstruction_distance(config, observed, model.decode(pose_aware_code))
         parts["pose_aware"] = float(pose_aware.detach())
         total = total + pose_aware
     consistency = config.gamma_consistency * pairwise_mean(x_c, copies, lambda a, b: (a - b).pow(2).sum(-1).mean())

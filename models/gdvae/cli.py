@@ -44,6 +44,10 @@ def train_command(args) -> int:
         chosen.ae_iterations = args.ae_iterations
     if args.vae_iterations is not None:
         chosen.vae_iterations = args.vae_iterations
+    if args.partial_views is not None:
+        if not 0.0 <= args.partial_views <= 1.0:
+            raise SystemExit(f"--partial-views {args.partial_views}: must be within 0..1")
+        chosen.partial_views = args.partial_views
     if args.relative_reconstruction:
         chosen.vae.reconstruction_per_dimension = False
     chosen.ae.supervised = not args.unsupervised
@@ -157,6 +161,8 @@ def main(argv=None) -> int:
     training.add_argument("--full-rotations", action="store_true", help="rotations over SO(3), not about the up axis")
     training.add_argument("--ae-iterations", type=int, help="override the recipe's AE iterations")
     training.add_argument("--vae-iterations", type=int, help="override the recipe's VAE iterations")
+    training.add_argument("--partial-views", type=float,
+                          help="fraction of AE inputs that are the side a camera sees (0..1; supervised AE)")
     training.add_argument("--relative-reconstruction", action="store_true",
                           help="VAE L_R without the paper's 1/dim(x_c) (better reconstruction, lower S)")
     training.add_argument("--stop-after", choices=["ae"], help="stop after this stage")

@@ -35,6 +35,12 @@ class Mesh:
         a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
         return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
 
+    def face_normals(self) -> np.ndarray:
+        """Unit normals by the faces' winding (outward for the sim's meshes)."""
+        a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
+        normals = np.cross(b - a, c - a)
+        return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+
 
 class MeshRejected(ValueError):
     """A mesh that cannot be used, with the reason."""
@@ -156,15 +162,35 @@ def normalize(mesh: Mesh, scale: float) -> Mesh:
     return Mesh((mesh.vertices - centre) * scale, mesh.faces)
 
 
-def sample_surface(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:
-    """`count` points uniformly distributed over the surface (area-weighted), float32."""
+def sample_surface(mesh: Mesh, count: int, rng: np.random.Generator, facing: np.ndarray | None = None) -> np.ndarray:
+    """`count` points uniformly distributed over the surface (area-weighted), float32.
+
+    `facing`: a unit vector from the object towards a distant viewer; only the faces turned
+    towards it are sampled, which is what a depth camera sees (self-occlusion is ignored)."""
     areas = mesh.face_areas()
+    if facing is not None:
+        visible = areas * (mesh.face_normals() @ facing > 0.0)
+        areas = visible if visible.sum() > 0 else areas
     faces = rng.choice(len(mesh.faces), size=count, p=areas / areas.sum())
     u, v = rng.random(count), rng.random(count)
     flip = u + v > 1.0
     u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
     a, b, c = (mesh.vertices[mesh.faces[faces, i]] for i in range(3))
     return (a + u[:, None] * (b - a) + v[:, None] * (c - a)).astype(np.float32)
+
+
+def random_view_directions(count: int, rng: np.random.Generator, up_axis: int = 2,
+                           elevation_degrees: tuple[float, float] = (5.0, 40.0)) -> np.ndarray:
+    """Unit vectors towards a camera: any azimuth about the up axis, looking down by an elevation
+    in the given range (a robot's camera above the ground)."""
+    azimuth = rng.uniform(-np.pi, np.pi, size=count)
+    elevation = np.radians(rng.uniform(*elevation_degrees, size=count))
+    horizontal = [a for a in range(3) if a != up_axis]
+    directions = np.zeros((count, 3))
+    directions[:, horizontal[0]] = np.cos(elevation) * np.cos(azimuth)
+    directions[:, horizontal[1]] = np.cos(elevation) * np.sin(azimuth)
+    directions[:, up_axis] = np.sin(elevation)
+    return directions
 
 
 def random_rotations(count: int, rng: np.random.Generator, full: bool = False, up_axis: int = 2) -> np.ndarray:

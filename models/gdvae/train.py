@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from .ae import AEConfig, Autoencoder, ae_loss
-from .data import MeshDataset, normalize, sample_surface
+from .data import MeshDataset, normalize, random_view_directions, sample_surface
 from .geometry import quaternion_to_matrix, random_rotation_matrices, rotate
 from .vae import LatentVAE, VAEConfig, vae_loss
 
@@ -46,6 +46,9 @@ class Recipe:
     vae_min_learning_rate: float = 1e-5
     vae_weight_decay: float = 1e-4
     spectrum_count: int = 22
+    # Fraction of AE input copies that are partial views (what a depth camera sees); the AE still
+    # reconstructs the whole surface, so x_c learns to ignore the view. Supervised AEs only.
+    partial_views: float = 0.0
     checkpoint_seconds: float = 120.0
     seed: int = 0
 
@@ -131,6 +134,17 @@ class PointSampler:
         clouds = np.stack([sample_surface(self.meshes[i], self.points, self.rng) for i in chosen])
         return chosen, torch.from_numpy(clouds)
 
+    def views(self, chosen: np.ndarray, copies: int, partial: float) -> torch.Tensor:
+        """Per copy of each chosen mesh (copy-major, as `ae_loss` lays copies out): with probability
+        `partial` the side a camera sees from a random direction, else the whole surface."""
+        clouds = []
+        for _ in range(copies):
+            directions = random_view_directions(len(chosen), self.rng)
+            for index, direction in zip(chosen, directions):
+                facing = direction if self.rng.random() < partial else None
+                clouds.append(sample_surface(self.meshes[index], self.points, self.rng, facing))
+        return torch.from_numpy(np.stack(clouds))
+
     def clouds(self, index: int, count: int) -> torch.Tensor:
         return torch.from_numpy(np.stack([sample_surface(self.meshes[index], self.points, self.rng) for _ in range(count)]))
 
@@ -205,6 +219,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     `init_from`: another run whose AE and code bank this run reuses (it starts at the VAE stage),
     so that two VAE regimes can be compared on exactly the same autoencoder.
     """
+    if chosen.partial_views > 0 and not chosen.ae.supervised:
+        raise ValueError("partial views need the supervised AE (its target is the whole canonical cloud)")
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if init_from is not None:  # record the AE budget actually spent, for the bundle's manifest
@@ -279,8 +295,9 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir) -> None:
     last_save = time.monotonic()
     ae.train()
     for iteration in range(start, total):
-        _, clouds = sampler.batch(chosen.ae_batch)
-        losses, _ = ae_loss(ae, clouds, rotation_only=iteration < pretrain)
+        indices, clouds = sampler.batch(chosen.ae_batch)
+        views = sampler.views(indices, ae.config.copies, chosen.partial_views) if chosen.partial_views > 0 else None
+        losses, _ = ae_loss(ae, clouds, rotation_only=iteration < pretrain, views=views)
         optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
         optimizer.step()

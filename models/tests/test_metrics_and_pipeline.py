@@ -64,3 +64,13 @@ def test_smoke_training_evaluation_and_export(tiny_dataset, tmp_path):
     encoder = ort.InferenceSession(str(bundle / "encoder.onnx"))
     outputs = encoder.run(None, {"points": np.random.default_rng(0).normal(size=(4, 300, 3)).astype(np.float32)})
     assert [o.shape for o in outputs] == [(4, 4), (4, 48), (4, 3), (4, 3), (4, 4), (4, 4), (4, 22), (4, 22)]
+
+
+def test_training_on_partial_views(tiny_dataset, tmp_path):
+    run = tmp_path / "partial"
+    assert main(["train", str(tiny_dataset), "--out", str(run), "--recipe", "smoke", "--partial-views", "0.5",
+                 "--stop-after", "ae"]) == 0
+    assert json.loads((run / "recipe.json").read_text())["partial_views"] == 0.5
+    refused = main(["train", str(tiny_dataset), "--out", str(tmp_path / "u"), "--recipe", "smoke", "--partial-views",
+                    "0.5", "--unsupervised"])
+    assert refused != 0 and not (tmp_path / "u" / "checkpoint.pt").exists()

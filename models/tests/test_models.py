@@ -169,3 +169,40 @@ def test_reconstruction_normalisation_per_dimension_or_relative():
     from gdvae.train import recipe
     assert recipe("cpu").vae.reconstruction_per_dimension is True
     assert recipe("paper").vae.reconstruction_per_dimension is True
+
+
+def test_partial_views_show_the_camera_side_and_train_against_the_whole_cloud():
+    import trimesh
+
+    from gdvae.data import Mesh, random_view_directions, sample_surface
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    mesh = Mesh(np.asarray(sphere.vertices, dtype=np.float64), np.asarray(sphere.faces, dtype=np.int64))
+    rng = np.random.default_rng(0)
+    directions = random_view_directions(50, rng)
+    assert np.allclose(np.linalg.norm(directions, axis=1), 1.0)
+    elevation = np.degrees(np.arcsin(directions[:, 2]))
+    assert elevation.min() >= 5.0 and elevation.max() <= 40.0
+    for direction in directions[:5]:
+        seen = sample_surface(mesh, 500, rng, facing=direction)
+        # Front faces of a unit icosphere: points whose position has a non-negative component
+        # towards the viewer, up to the faces straddling the silhouette.
+        assert (seen @ direction > -0.1).all()
+        assert (seen @ direction).mean() > 0.4  # a hemisphere's mean is 0.5; the whole sphere's 0
+    whole = sample_surface(mesh, 2000, rng)
+    assert abs((whole @ directions[0]).mean()) < 0.05
+
+    torch.manual_seed(0)
+    model = Autoencoder(AEConfig(kind="ftl", points=64, latent=24, rotation_hidden=(8, 16), shape_hidden=(8, 16),
+                                 decoder_width=16, copies=2))
+    clouds = torch.from_numpy(np.stack([sample_surface(mesh, 64, rng) for _ in range(3)]))
+    views = torch.from_numpy(np.stack([sample_surface(mesh, 64, rng, facing=d) for d in directions[:6]]))
+    losses, output = ae_loss(model, clouds, views=views)
+    losses.total.backward()
+    assert no_gradient(model) == []
+    assert output.canonical.shape == (6, 64, 3)
+    with pytest.raises(ValueError, match="copies"):
+        ae_loss(model, clouds, views=views[:4])
+    model.config.supervised = False
+    with pytest.raises(ValueError, match="supervised"):
+        ae_loss(model, clouds, views=views)
