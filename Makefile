@@ -1,5 +1,5 @@
 # The project's entry points. `make test` is what CI runs (.ci/run).
-.PHONY: demo test test-rust test-python sim node venv onnxruntime samples
+.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples
 
 VENV := .venv
 PYTHON := $(VENV)/bin/python
@@ -20,9 +20,14 @@ test: test-rust test-python
 test-rust: venv
 	cargo test --workspace --release
 
-test-python: venv sim node
+test-python: venv binaries
 	$(PYTHON) -m pytest -q sim/tests/python tests/python
 	cd models && ../$(PYTHON) -m pytest -q tests
+
+# The binaries the Python checks run (target/release/sim, gdvae-node), built exactly as the Rust
+# tests build them, so that after `test-rust` nothing is compiled a second time.
+binaries:
+	cargo test --workspace --release --no-run
 
 # Build the simulator CLI (target/release/sim).
 sim:
