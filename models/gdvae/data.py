@@ -15,6 +15,7 @@ import json
 import logging
 from collections import Counter
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -32,14 +33,20 @@ class Mesh:
     faces: np.ndarray
 
     def face_areas(self) -> np.ndarray:
-        a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
-        return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+        return self._face_geometry[0]
 
     def face_normals(self) -> np.ndarray:
         """Unit normals by the faces' winding (outward for the sim's meshes)."""
+        return self._face_geometry[1]
+
+    @cached_property
+    def _face_geometry(self) -> tuple[np.ndarray, np.ndarray]:
+        # Computed once per mesh: samplers call these for every cloud (meshes are never mutated;
+        # `normalize` makes a new one).
         a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
-        normals = np.cross(b - a, c - a)
-        return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+        cross = np.cross(b - a, c - a)
+        norms = np.linalg.norm(cross, axis=1)
+        return 0.5 * norms, cross / np.maximum(norms, 1e-300)[:, None]
 
 
 class MeshRejected(ValueError):
