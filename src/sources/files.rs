@@ -396,25 +396,10 @@ fn sample_surface(
 
 /// The files a files source reads: the file itself, or the readable files of a folder by name.
 pub fn list_files(path: &Path) -> Result<Vec<std::path::PathBuf>, FileError> {
-    let io = |source| FileError::Io {
+    let files = super::file_or_folder(path, &EXTENSIONS).map_err(|source| FileError::Io {
         path: path.display().to_string(),
         source,
-    };
-    if !path.is_dir() {
-        std::fs::metadata(path).map_err(io)?;
-        return Ok(vec![path.to_path_buf()]);
-    }
-    let mut files: Vec<_> = std::fs::read_dir(path)
-        .map_err(io)?
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| {
-            p.extension()
-                .and_then(|e| e.to_str())
-                .is_some_and(|e| EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
-        })
-        .collect();
-    files.sort();
+    })?;
     if files.is_empty() {
         return Err(FileError::Invalid {
             path: path.display().to_string(),

@@ -31,21 +31,10 @@ pub enum McapSourceError {
 
 /// The MCAP files of a path: the file itself, or a rosbag2 folder's `.mcap` files by name.
 pub fn recording_files(path: &Path) -> Result<Vec<PathBuf>, McapSourceError> {
-    let io = |source| McapSourceError::Io {
+    let files = super::file_or_folder(path, &["mcap"]).map_err(|source| McapSourceError::Io {
         path: path.to_path_buf(),
         source,
-    };
-    if !path.is_dir() {
-        std::fs::metadata(path).map_err(io)?;
-        return Ok(vec![path.to_path_buf()]);
-    }
-    let mut files: Vec<PathBuf> = std::fs::read_dir(path)
-        .map_err(io)?
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
-        .collect();
-    files.sort();
+    })?;
     if files.is_empty() {
         return Err(McapSourceError::Topic {
             path: path.to_path_buf(),
