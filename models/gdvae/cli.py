@@ -89,13 +89,24 @@ def evaluate_command(args) -> int:
     from .train import load_run
 
     chosen, ae, vae, state = load_run(args.run)
-    if vae is None:
-        raise ValueError(f"{args.run}: the VAE stage has not finished (stage {state['stage']!r})")
+    if args.ae_only:
+        vae = None
+    elif vae is None:
+        raise ValueError(f"{args.run}: the VAE stage has not finished (stage {state['stage']!r}); "
+                         "--ae-only evaluates its autoencoder")
+    if args.figures and vae is None:
+        raise ValueError("--figures needs the VAE; drop --ae-only")
+    if args.partial_views < 0:
+        raise ValueError(f"--partial-views must be 0 or more, got {args.partial_views}")
     dataset = load_dataset(args.dataset, limit=args.limit)
-    spectra = dataset_spectra(dataset, vae.config.spectrum, SpectrumCache(Path(args.dataset) / ".spectra"))
+    spectra = None
+    if vae is not None:
+        spectra = dataset_spectra(dataset, vae.config.spectrum, SpectrumCache(Path(args.dataset) / ".spectra"))
     sim = args.sim or default_sim_binary()
     metrics = evaluate(ae, vae, dataset, spectra, split=args.split, full_rotations=chosen.ae.full_rotations,
-                       sim_binary=sim)
+                       sim_binary=sim, partial_views=args.partial_views)
+    if state["stage"] != "done":  # a run still training: say how far it was
+        metrics["checkpoint"] = {"stage": state["stage"], "iteration": state["iteration"]}
     metrics = finite_or_null(metrics)
     metrics["run"] = str(args.run)
     metrics["dataset"] = str(args.dataset)
@@ -178,6 +189,10 @@ def main(argv=None) -> int:
     evaluation.add_argument("--figures", help="also write PNG figures into this folder")
     evaluation.add_argument("--sim", help="sim binary for pose-transfer ground truth (default: target/release/sim)")
     evaluation.add_argument("--limit", type=int)
+    evaluation.add_argument("--ae-only", action="store_true",
+                            help="only the autoencoder's metrics (also for a run still in its AE stage)")
+    evaluation.add_argument("--partial-views", type=int, default=5, metavar="N",
+                            help="camera-like views per mesh for the partial-view metrics (0: skip them)")
     evaluation.set_defaults(handler=evaluate_command)
 
     export = commands.add_parser("export", help="write a run as an ONNX bundle (the node's model format)")

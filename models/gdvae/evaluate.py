@@ -32,6 +32,11 @@ def encode_all(ae, vae, clouds: torch.Tensor, rotations: torch.Tensor, spectra: 
     return codes
 
 
+def shape_code(ae, inputs: torch.Tensor) -> torch.Tensor:
+    """x_c of clouds in any rotation, canonicalized by the AE's own rotation estimate."""
+    return ae.encode_shape(inputs, quaternion_to_matrix(ae.encode_rotation(inputs)))[0]
+
+
 def made_by_sim(dataset: MeshDataset) -> bool:
     """Pose-transfer ground truth comes from the sim, so only its datasets qualify."""
     import json
@@ -97,11 +102,41 @@ def pose_transfer(ae, vae, dataset: MeshDataset, indices: list[int], codes: dict
     }
 
 
+def family_retrieval(dataset: MeshDataset, indices: list[int], codes: dict) -> dict:
+    """Pose-aware retrieval scores and S per family (families with at least 5 shapes)."""
+    truths = [dataset.items[i].truth for i in indices]
+    retrieval = {}
+    for family in sorted({t["family"] for t in truths if t}):
+        rows = [k for k, t in enumerate(truths) if t and t["family"] == family]
+        if len(rows) < 5:
+            continue
+        beta = np.array([truths[k]["beta"] for k in rows])
+        theta = np.array([truths[k]["theta"] for k in rows])
+        pick = lambda key: codes[key][rows].numpy()  # noqa: E731
+        family_codes = {
+            "x_c": pick("x_c"),
+            "z": np.concatenate([pick("mu_R"), pick("mu_E"), pick("mu_I")], 1),
+            "z_E": pick("mu_E"),
+            "z_I": pick("mu_I"),
+        }
+        if "mu_I_spectral" in codes:
+            family_codes["z~_I"] = pick("mu_I_spectral")
+        retrieval[family] = disentanglement(family_codes, beta, theta)
+    return retrieval
+
+
+def mean_s(retrieval: dict) -> float | None:
+    return float(np.mean([r["S"] for r in retrieval.values()])) if retrieval else None
+
+
 @torch.no_grad()
-def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray, split: str = "test", seed: int = 0,
-             full_rotations: bool = False, sim_binary: str | None = None) -> dict:
+def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray | None, split: str = "test", seed: int = 0,
+             full_rotations: bool = False, sim_binary: str | None = None, partial_views: int = 5) -> dict:
+    """Every metric on one split. `vae` None: the AE's metrics only. `partial_views`: view
+    directions per mesh for the camera-like partial-view metrics (0: skip them)."""
     ae.eval()
-    vae.eval()
+    if vae is not None:
+        vae.eval()
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     indices = dataset.indices(split)
@@ -111,7 +146,6 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray, split: str = "t
     sampler = PointSampler(dataset, indices, points, seed)
     clouds = torch.stack([sampler.clouds(i, 1)[0] for i in range(len(indices))])
     fresh = torch.stack([sampler.clouds(i, 1)[0] for i in range(len(indices))])
-    spectrum = torch.from_numpy(spectra[indices]).float()
     metrics: dict = {"split": split, "shapes": len(indices), "points": points}
 
     # AE: reconstruction, canonicalization, heading, over five rotated copies.
@@ -127,12 +161,16 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray, split: str = "t
                                          for i in range(3) for j in range(3) if i != j]).mean())
     metrics["heading_error_median_deg"] = float(np.median(np.concatenate(headings)))
 
-    def encode_x(inputs):
-        return ae.encode_shape(inputs, quaternion_to_matrix(ae.encode_rotation(inputs)))[0]
+    metrics["C_X"] = clustering_consistency(lambda inputs: shape_code(ae, inputs), clouds, rng, full_rotations=full_rotations)
 
-    metrics["C_X"] = clustering_consistency(encode_x, clouds, rng, full_rotations=full_rotations)
+    if vae is None:
+        if partial_views:
+            metrics["partial_views"] = partial_view_metrics(ae, None, dataset, indices, clouds, rng, seed,
+                                                            partial_views, full_rotations)
+        return metrics
 
     # VAE: codes of one rotated copy per shape.
+    spectrum = torch.from_numpy(spectra[indices]).float()
     rotations = random_rotation_matrices(len(clouds), full=full_rotations)
     codes = encode_all(ae, vae, clouds, rotations, spectrum)
     q_hat, x_hat = vae.decode(codes["mu_R"], codes["mu_E"], codes["mu_I"])
@@ -161,27 +199,9 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray, split: str = "t
 
     # Pose-aware retrieval and the disentanglement score, per family.
     if dataset.has_ground_truth:
-        truths = [dataset.items[i].truth for i in indices]
-        families = sorted({t["family"] for t in truths if t})
-        retrieval = {}
-        for family in families:
-            rows = [k for k, t in enumerate(truths) if t and t["family"] == family]
-            if len(rows) < 5:
-                continue
-            beta = np.array([truths[k]["beta"] for k in rows])
-            theta = np.array([truths[k]["theta"] for k in rows])
-            pick = lambda key: codes[key][rows].numpy()  # noqa: E731
-            family_codes = {
-                "x_c": pick("x_c"),
-                "z": np.concatenate([pick("mu_R"), pick("mu_E"), pick("mu_I")], 1),
-                "z_E": pick("mu_E"),
-                "z_I": pick("mu_I"),
-                "z~_I": pick("mu_I_spectral"),
-            }
-            retrieval[family] = disentanglement(family_codes, beta, theta)
-        metrics["retrieval"] = retrieval
-        if retrieval:
-            metrics["S"] = float(np.mean([r["S"] for r in retrieval.values()]))
+        metrics["retrieval"] = family_retrieval(dataset, indices, codes)
+        if metrics["retrieval"]:
+            metrics["S"] = mean_s(metrics["retrieval"])
         if not sim_binary:
             log.info("no sim binary: the pose-transfer error is skipped")
         elif not made_by_sim(dataset):
@@ -190,4 +210,31 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray, split: str = "t
             metrics["pose_transfer"] = pose_transfer(ae, vae, dataset, indices, codes, sim_binary, rng)
     else:
         log.info("no ground truth: retrieval and the disentanglement score S are skipped")
+    if partial_views:
+        metrics["partial_views"] = partial_view_metrics(ae, vae, dataset, indices, clouds, rng, seed, partial_views,
+                                                        full_rotations)
+    return metrics
+
+
+@torch.no_grad()
+def partial_view_metrics(ae, vae, dataset: MeshDataset, indices: list[int], clouds: torch.Tensor,
+                         rng: np.random.Generator, seed: int, count: int, full_rotations: bool) -> dict:
+    """What the node sees: the side of each mesh facing a camera above the ground, `count` view
+    directions per mesh. Heading error and C_X (the copies of a mesh are different views, not one
+    cloud rotated), and with a VAE the retrieval scores and S (z~_I skipped: a view has no spectrum)."""
+    sampler = PointSampler(dataset, indices, clouds.shape[1], seed + 1)
+    views = sampler.views(np.arange(len(indices)), count, 1.0).reshape(count, *clouds.shape)
+    rotations = random_rotation_matrices(len(clouds), full=full_rotations)
+    q = ae.encode_rotation(rotate(views[0], rotations))
+
+    metrics = {
+        "views_per_shape": count,
+        "heading_error_median_deg": float(np.median(heading_errors(q, rotations))),
+        "C_X": clustering_consistency(lambda inputs: shape_code(ae, inputs), clouds, rng, full_rotations=full_rotations, views=views),
+    }
+    if vae is not None and dataset.has_ground_truth:
+        codes = encode_all(ae, vae, views[0], rotations, None)
+        metrics["retrieval"] = family_retrieval(dataset, indices, codes)
+        if metrics["retrieval"]:
+            metrics["S"] = mean_s(metrics["retrieval"])
     return metrics

@@ -79,9 +79,14 @@ def disentanglement(codes: dict[str, np.ndarray], beta: np.ndarray, theta: np.nd
 # ---- rotation invariance ---------------------------------------------------------------------
 
 def clustering_consistency(encode, clouds: torch.Tensor, rng: np.random.Generator, copies: int = 5,
-                           sizes: int = 8, full_rotations: bool = False) -> float:
-    """C_X: mean AMI of k-means on x_c of rotated copies, identity as label (appendix C.1)."""
+                           sizes: int = 8, full_rotations: bool = False, views: torch.Tensor | None = None) -> float:
+    """C_X: mean AMI of k-means on x_c of rotated copies, identity as label (appendix C.1).
+
+    `views` ([copies, shapes, points, 3]): other samples of each shape, e.g. the sides a camera
+    sees, used as its copies instead of the same cloud."""
     total = len(clouds)
+    if views is not None:
+        copies = len(views)
     if total < 4:
         raise ValueError(f"C_X needs at least 4 test shapes, got {total}")
     grid = np.unique(np.linspace(min(20, total), min(1000, total), sizes).astype(int))
@@ -90,7 +95,10 @@ def clustering_consistency(encode, clouds: torch.Tensor, rng: np.random.Generato
         runs = []
         for _ in range(2):
             chosen = rng.choice(total, size=size, replace=False)
-            batch = clouds[chosen].repeat(copies, 1, 1)
+            if views is None:
+                batch = clouds[chosen].repeat(copies, 1, 1)
+            else:
+                batch = views[:, chosen].reshape(copies * size, *clouds.shape[1:])
             rotations = random_rotation_matrices(len(batch), full=full_rotations)
             codes = encode(rotate(batch, rotations)).numpy()
             labels = np.tile(np.arange(size), copies)

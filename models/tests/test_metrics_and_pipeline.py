@@ -19,6 +19,15 @@ def test_perfect_invariance_gives_ami_one_and_noise_gives_about_zero():
     assert abs(clustering_consistency(noise, clouds, np.random.default_rng(0), sizes=3)) < 0.15
 
 
+def test_views_as_copies_cluster_by_shape_only_when_the_code_ignores_the_view():
+    clouds = torch.randn(30, 16, 3)
+    views = torch.stack([clouds + 0.01 * torch.randn_like(clouds) for _ in range(4)])  # 4 samples of each shape
+    mean = lambda inputs: inputs.norm(dim=-1).sort(dim=-1).values  # noqa: E731
+    assert clustering_consistency(mean, clouds, np.random.default_rng(0), sizes=3, views=views) > 0.95
+    scrambled = torch.stack([clouds[torch.randperm(30)] for _ in range(4)])  # copies are other shapes
+    assert clustering_consistency(mean, clouds, np.random.default_rng(0), sizes=3, views=scrambled) < 0.3
+
+
 def test_random_retrieval_scores_about_zero_and_oracle_codes_score_high():
     rng = np.random.default_rng(0)
     beta, theta = rng.normal(size=(300, 5)), rng.normal(0, 0.4, size=(300, 12))
@@ -51,6 +60,9 @@ def test_smoke_training_evaluation_and_export(tiny_dataset, tmp_path):
     base = [f["codes"]["x_c"] for f in measured["retrieval"].values()]
     assert (measured["S"] is None) == any(b["s_beta"] <= 0 or b["s_theta"] <= 0 for b in base)
     assert set(measured["retrieval"]) == {"blobA", "blobB"}
+    partial = measured["partial_views"]
+    assert partial["views_per_shape"] == 5 and set(partial["retrieval"]) == {"blobA", "blobB"}
+    assert np.isfinite(partial["C_X"]) and np.isfinite(partial["heading_error_median_deg"])
     assert main(["export", str(run), "--out", str(bundle), "--metrics", str(metrics)]) == 0
     manifest = json.loads((bundle / "manifest.json").read_text())
     assert manifest["onnx_parity_max_diff"] <= 1e-4
@@ -71,6 +83,13 @@ def test_training_on_partial_views(tiny_dataset, tmp_path):
     assert main(["train", str(tiny_dataset), "--out", str(run), "--recipe", "smoke", "--partial-views", "0.5",
                  "--stop-after", "ae"]) == 0
     assert json.loads((run / "recipe.json").read_text())["partial_views"] == 0.5
+    metrics = tmp_path / "ae.json"
+    assert main(["evaluate", str(run), str(tiny_dataset)]) != 0  # the VAE stage has not run
+    assert main(["evaluate", str(run), str(tiny_dataset), "--ae-only", "--partial-views", "2", "--out",
+                 str(metrics)]) == 0
+    measured = json.loads(metrics.read_text())
+    assert "S" not in measured and measured["partial_views"]["views_per_shape"] == 2
+    assert np.isfinite(measured["C_X"]) and np.isfinite(measured["partial_views"]["C_X"])
     refused = main(["train", str(tiny_dataset), "--out", str(tmp_path / "u"), "--recipe", "smoke", "--partial-views",
                     "0.5", "--unsupervised"])
     assert refused != 0 and not (tmp_path / "u" / "checkpoint.pt").exists()
