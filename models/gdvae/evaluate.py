@@ -161,12 +161,14 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray | None, split: s
                                          for i in range(3) for j in range(3) if i != j]).mean())
     metrics["heading_error_median_deg"] = float(np.median(np.concatenate(headings)))
 
-    metrics["C_X"] = clustering_consistency(lambda inputs: shape_code(ae, inputs), clouds, rng, full_rotations=full_rotations)
+    metrics["C_X"] = clustering_consistency(lambda inputs, _: shape_code(ae, inputs), clouds, rng,
+                                            full_rotations=full_rotations)
 
     if vae is None:
         if partial_views:
             metrics["partial_views"] = partial_view_metrics(ae, None, dataset, indices, clouds, rng, seed,
                                                             partial_views, full_rotations)
+        metrics["rotation_diagnostics"] = rotation_diagnostics(ae, dataset, indices, clouds, rng, full_rotations)
         return metrics
 
     # VAE: codes of one rotated copy per shape.
@@ -213,7 +215,27 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray | None, split: s
     if partial_views:
         metrics["partial_views"] = partial_view_metrics(ae, vae, dataset, indices, clouds, rng, seed, partial_views,
                                                         full_rotations)
+    metrics["rotation_diagnostics"] = rotation_diagnostics(ae, dataset, indices, clouds, rng, full_rotations)
     return metrics
+
+
+@torch.no_grad()
+def rotation_diagnostics(ae, dataset: MeshDataset, indices: list[int], clouds: torch.Tensor,
+                         rng: np.random.Generator, full_rotations: bool) -> dict:
+    """Where C_X is lost: the heading error's spread per family, and C_X when the shape encoder is
+    given the true rotation instead of E_r's estimate (the part of C_X an exact E_r would recover;
+    what remains is the shape encoder's own lack of invariance)."""
+    rotations = random_rotation_matrices(len(clouds), full=full_rotations)
+    errors = heading_errors(ae.encode_rotation(rotate(clouds, rotations)), rotations)
+    families = np.array([(dataset.items[i].truth or {}).get("family", "all") for i in indices])
+    heading = {}
+    for family in sorted(set(families)):
+        chosen = errors[families == family]
+        heading[family] = {"median_deg": float(np.median(chosen)), "p90_deg": float(np.percentile(chosen, 90)),
+                           "over_90deg_fraction": float((chosen > 90).mean())}
+    true_rotation = clustering_consistency(lambda inputs, applied: ae.encode_shape(inputs, applied)[0], clouds, rng,
+                                           full_rotations=full_rotations)
+    return {"heading": heading, "C_X_true_rotation": true_rotation}
 
 
 @torch.no_grad()
@@ -230,7 +252,8 @@ def partial_view_metrics(ae, vae, dataset: MeshDataset, indices: list[int], clou
     metrics = {
         "views_per_shape": count,
         "heading_error_median_deg": float(np.median(heading_errors(q, rotations))),
-        "C_X": clustering_consistency(lambda inputs: shape_code(ae, inputs), clouds, rng, full_rotations=full_rotations, views=views),
+        "C_X": clustering_consistency(lambda inputs, _: shape_code(ae, inputs), clouds, rng,
+                                      full_rotations=full_rotations, views=views),
     }
     if vae is not None and dataset.has_ground_truth:
         codes = encode_all(ae, vae, views[0], rotations, None)

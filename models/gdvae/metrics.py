@@ -82,7 +82,8 @@ def clustering_consistency(encode, clouds: torch.Tensor, rng: np.random.Generato
                            sizes: int = 8, full_rotations: bool = False, views: torch.Tensor | None = None) -> float:
     """C_X: mean AMI of k-means on x_c of rotated copies, identity as label (appendix C.1).
 
-    `views` ([copies, shapes, points, 3]): other samples of each shape, e.g. the sides a camera
+    `encode(inputs, rotations)` gets the rotated clouds and the rotations applied (for an oracle
+    that may use them). `views` ([copies, shapes, points, 3]): other samples of each shape, e.g. the sides a camera
     sees, used as its copies instead of the same cloud."""
     total = len(clouds)
     if views is not None:
@@ -100,7 +101,7 @@ def clustering_consistency(encode, clouds: torch.Tensor, rng: np.random.Generato
             else:
                 batch = views[:, chosen].reshape(copies * size, *clouds.shape[1:])
             rotations = random_rotation_matrices(len(batch), full=full_rotations)
-            codes = encode(rotate(batch, rotations)).numpy()
+            codes = encode(rotate(batch, rotations), rotations).numpy()
             labels = np.tile(np.arange(size), copies)
             predicted = KMeans(n_clusters=size, n_init=3, random_state=int(rng.integers(1 << 31))).fit_predict(codes)
             runs.append(adjusted_mutual_info_score(labels, predicted))

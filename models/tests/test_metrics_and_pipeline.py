@@ -13,16 +13,16 @@ from gdvae.metrics import clustering_consistency, coverage_and_fidelity, disenta
 
 def test_perfect_invariance_gives_ami_one_and_noise_gives_about_zero():
     clouds = torch.randn(30, 16, 3)
-    identity = lambda inputs: inputs.norm(dim=-1).sort(dim=-1).values  # rotation-invariant codes  # noqa: E731
+    identity = lambda inputs, _: inputs.norm(dim=-1).sort(dim=-1).values  # rotation-invariant codes  # noqa: E731
     assert clustering_consistency(identity, clouds, np.random.default_rng(0), sizes=3) == pytest.approx(1.0)
-    noise = lambda inputs: torch.randn(len(inputs), 8)  # noqa: E731
+    noise = lambda inputs, _: torch.randn(len(inputs), 8)  # noqa: E731
     assert abs(clustering_consistency(noise, clouds, np.random.default_rng(0), sizes=3)) < 0.15
 
 
 def test_views_as_copies_cluster_by_shape_only_when_the_code_ignores_the_view():
     clouds = torch.randn(30, 16, 3)
     views = torch.stack([clouds + 0.01 * torch.randn_like(clouds) for _ in range(4)])  # 4 samples of each shape
-    mean = lambda inputs: inputs.norm(dim=-1).sort(dim=-1).values  # noqa: E731
+    mean = lambda inputs, _: inputs.norm(dim=-1).sort(dim=-1).values  # noqa: E731
     assert clustering_consistency(mean, clouds, np.random.default_rng(0), sizes=3, views=views) > 0.95
     scrambled = torch.stack([clouds[torch.randperm(30)] for _ in range(4)])  # copies are other shapes
     assert clustering_consistency(mean, clouds, np.random.default_rng(0), sizes=3, views=scrambled) < 0.3
@@ -63,6 +63,8 @@ def test_smoke_training_evaluation_and_export(tiny_dataset, tmp_path):
     partial = measured["partial_views"]
     assert partial["views_per_shape"] == 5 and set(partial["retrieval"]) == {"blobA", "blobB"}
     assert np.isfinite(partial["C_X"]) and np.isfinite(partial["heading_error_median_deg"])
+    diagnostics = measured["rotation_diagnostics"]
+    assert set(diagnostics["heading"]) == {"blobA", "blobB"} and np.isfinite(diagnostics["C_X_true_rotation"])
     assert main(["export", str(run), "--out", str(bundle), "--metrics", str(metrics)]) == 0
     manifest = json.loads((bundle / "manifest.json").read_text())
     assert manifest["onnx_parity_max_diff"] <= 1e-4
