@@ -190,12 +190,14 @@ def live_frames(session, prefix):
         session.declare_subscriber(f"{prefix}/camera_info", lambda s: samples.put(("info", bytes(s.payload)))),
     ]
     images, infos = {}, {}
+    timeout = 60.0  # the feed may take a while to start (it renders its first frame); then 5 s of silence ends it
     try:
         while True:
             try:
-                kind, payload = samples.get(timeout=5.0)
+                kind, payload = samples.get(timeout=timeout)
             except queue.Empty:
                 return
+            timeout = 5.0
             if kind == "depth":
                 image = decode_image(payload)
                 stamp = image.header.stamp.sec * 10**9 + image.header.stamp.nanosec
