@@ -197,8 +197,16 @@ fn zenoh_sources_decode_cdr_and_depthai_and_count_what_they_reject() {
     let (_subscriber, received) = collect(&client, "gdvae/live/**");
     wait_for_subscriber(&node, "gdvae/live/ros/state");
     let (stop, stats, handle) = start(config, node.clone());
-    let ros = client.declare_publisher("test/ros/points").wait().unwrap();
-    let oak = client.declare_publisher("test/oak/points").wait().unwrap();
+    // Block, not zenoh's default Drop: on a loaded machine a burst of large puts would otherwise be
+    // dropped on the way, and the node could not count what never reached it.
+    let publisher = |key: &'static str| {
+        client
+            .declare_publisher(key)
+            .congestion_control(zenoh::qos::CongestionControl::Block)
+            .wait()
+            .unwrap()
+    };
+    let (ros, oak) = (publisher("test/ros/points"), publisher("test/oak/points"));
     // Subscriptions are declared by the pipeline: wait until they reach the client.
     assert!(wait_until(Duration::from_secs(20), || ros
         .matching_status()
