@@ -164,54 +164,8 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray | None, split: s
     metrics["C_X"] = clustering_consistency(lambda inputs, _: shape_code(ae, inputs), clouds, rng,
                                             full_rotations=full_rotations)
 
-    if vae is None:
-        if partial_views:
-            metrics["partial_views"] = partial_view_metrics(ae, None, dataset, indices, clouds, rng, seed,
-                                                            partial_views, full_rotations)
-        metrics["rotation_diagnostics"] = rotation_diagnostics(ae, dataset, indices, clouds, rng, full_rotations)
-        return metrics
-
-    # VAE: codes of one rotated copy per shape.
-    spectrum = torch.from_numpy(spectra[indices]).float()
-    rotations = random_rotation_matrices(len(clouds), full=full_rotations)
-    codes = encode_all(ae, vae, clouds, rotations, spectrum)
-    q_hat, x_hat = vae.decode(codes["mu_R"], codes["mu_E"], codes["mu_I"])
-    recon = rotate(ae.decode(x_hat), quaternion_to_matrix(q_hat))
-    metrics["vae_d_C"] = float(chamfer(recon, rotate(fresh, rotations)).mean())
-    metrics["log_p_lambda"] = float(vae.flow.log_prob(spectrum).mean())
-
-    # Shape from spectrum: decode (z_E = 0, z_I = f(lambda)), compare with the canonical shape.
-    _, x_spectral = vae.decode(codes["mu_R"], torch.zeros_like(codes["mu_E"]), codes["mu_I_spectral"])
-    metrics["shape_from_spectrum_d_C"] = float(chamfer(ae.decode(x_spectral), fresh).mean())
-
-    # Generation: coverage and fidelity against rotated test clouds, 5x as many samples, two runs.
-    c = vae.config
-    coverages, fidelities = [], []
-    for _ in range(2):
-        count = 5 * len(clouds)
-        z = [torch.randn(count, size) for size in (c.n_rotation, c.n_extrinsic, c.n_intrinsic)]
-        q_gen, x_gen = vae.decode(*z)
-        generated = rotate(ae.decode(x_gen), quaternion_to_matrix(q_gen))
-        real = rotate(fresh, random_rotation_matrices(len(fresh), full=full_rotations))
-        coverage, fidelity = coverage_and_fidelity(generated, real)
-        coverages.append(coverage)
-        fidelities.append(fidelity)
-    metrics["coverage"] = float(np.mean(coverages))
-    metrics["fidelity"] = float(np.mean(fidelities))
-
-    # Pose-aware retrieval and the disentanglement score, per family.
-    if dataset.has_ground_truth:
-        metrics["retrieval"] = family_retrieval(dataset, indices, codes)
-        if metrics["retrieval"]:
-            metrics["S"] = mean_s(metrics["retrieval"])
-        if not sim_binary:
-            log.info("no sim binary: the pose-transfer error is skipped")
-        elif not made_by_sim(dataset):
-            log.info("%s was not written by `sim dataset`: the pose-transfer error is skipped", dataset.root)
-        else:
-            metrics["pose_transfer"] = pose_transfer(ae, vae, dataset, indices, codes, sim_binary, rng)
-    else:
-        log.info("no ground truth: retrieval and the disentanglement score S are skipped")
+    if vae is not None:
+        metrics.update(vae_metrics(ae, vae, dataset, indices, clouds, fresh, spectra, rng, full_rotations, sim_binary))
     if partial_views:
         metrics["partial_views"] = partial_view_metrics(ae, vae, dataset, indices, clouds, rng, seed, partial_views,
                                                         full_rotations)
@@ -260,4 +214,55 @@ def partial_view_metrics(ae, vae, dataset: MeshDataset, indices: list[int], clou
         metrics["retrieval"] = family_retrieval(dataset, indices, codes)
         if metrics["retrieval"]:
             metrics["S"] = mean_s(metrics["retrieval"])
+    return metrics
+
+
+@torch.no_grad()
+def vae_metrics(ae, vae, dataset: MeshDataset, indices: list[int], clouds: torch.Tensor, fresh: torch.Tensor,
+                spectra: np.ndarray, rng: np.random.Generator, full_rotations: bool, sim_binary: str | None) -> dict:
+    """The VAE's metrics: reconstruction, log P_lambda, shape from spectrum, generation, retrieval
+    and S, pose transfer."""
+    metrics: dict = {}
+
+    # VAE: codes of one rotated copy per shape.
+    spectrum = torch.from_numpy(spectra[indices]).float()
+    rotations = random_rotation_matrices(len(clouds), full=full_rotations)
+    codes = encode_all(ae, vae, clouds, rotations, spectrum)
+    q_hat, x_hat = vae.decode(codes["mu_R"], codes["mu_E"], codes["mu_I"])
+    recon = rotate(ae.decode(x_hat), quaternion_to_matrix(q_hat))
+    metrics["vae_d_C"] = float(chamfer(recon, rotate(fresh, rotations)).mean())
+    metrics["log_p_lambda"] = float(vae.flow.log_prob(spectrum).mean())
+
+    # Shape from spectrum: decode (z_E = 0, z_I = f(lambda)), compare with the canonical shape.
+    _, x_spectral = vae.decode(codes["mu_R"], torch.zeros_like(codes["mu_E"]), codes["mu_I_spectral"])
+    metrics["shape_from_spectrum_d_C"] = float(chamfer(ae.decode(x_spectral), fresh).mean())
+
+    # Generation: coverage and fidelity against rotated test clouds, 5x as many samples, two runs.
+    c = vae.config
+    coverages, fidelities = [], []
+    for _ in range(2):
+        count = 5 * len(clouds)
+        z = [torch.randn(count, size) for size in (c.n_rotation, c.n_extrinsic, c.n_intrinsic)]
+        q_gen, x_gen = vae.decode(*z)
+        generated = rotate(ae.decode(x_gen), quaternion_to_matrix(q_gen))
+        real = rotate(fresh, random_rotation_matrices(len(fresh), full=full_rotations))
+        coverage, fidelity = coverage_and_fidelity(generated, real)
+        coverages.append(coverage)
+        fidelities.append(fidelity)
+    metrics["coverage"] = float(np.mean(coverages))
+    metrics["fidelity"] = float(np.mean(fidelities))
+
+    # Pose-aware retrieval and the disentanglement score, per family.
+    if dataset.has_ground_truth:
+        metrics["retrieval"] = family_retrieval(dataset, indices, codes)
+        if metrics["retrieval"]:
+            metrics["S"] = mean_s(metrics["retrieval"])
+        if not sim_binary:
+            log.info("no sim binary: the pose-transfer error is skipped")
+        elif not made_by_sim(dataset):
+            log.info("%s was not written by `sim dataset`: the pose-transfer error is skipped", dataset.root)
+        else:
+            metrics["pose_transfer"] = pose_transfer(ae, vae, dataset, indices, codes, sim_binary, rng)
+    else:
+        log.info("no ground truth: retrieval and the disentanglement score S are skipped")
     return metrics
