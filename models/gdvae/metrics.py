@@ -83,8 +83,8 @@ def clustering_consistency(encode, clouds: torch.Tensor, rng: np.random.Generato
     """C_X: mean AMI of k-means on x_c of rotated copies, identity as label (appendix C.1).
 
     `encode(inputs, rotations)` gets the rotated clouds and the rotations applied (for an oracle
-    that may use them). `views` ([copies, shapes, points, 3]): other samples of each shape, e.g. the sides a camera
-    sees, used as its copies instead of the same cloud."""
+    that may use them). `views` ([copies, shapes, points, 3]): other samples of each shape, e.g.
+    the sides a camera sees, used as its copies instead of the same cloud."""
     total = len(clouds)
     if views is not None:
         copies = len(views)
