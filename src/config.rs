@@ -215,7 +215,7 @@ pub struct TrackSettings {
 impl Default for TrackSettings {
     fn default() -> Self {
         Self {
-            shape_gate: 2.5,
+            shape_gate: 1.0,
             switch_frames: 5,
             min_shape_variance: 1e-4,
             smoothing: Smoothing::OneEuro,

@@ -33,6 +33,35 @@ def spectra_command(args) -> int:
     return 0
 
 
+def apply_setting(chosen, assignment: str) -> None:
+    """`--set ae.KEY=VALUE` / `vae.KEY=VALUE`: override one recipe field (an experiment's knob),
+    converted to the field's type; unknown sections or fields are an error, not ignored."""
+    import dataclasses
+
+    name, separator, text = assignment.partition("=")
+    section, _, field = name.partition(".")
+    target = {"ae": chosen.ae, "vae": chosen.vae}.get(section)
+    if not separator or target is None or not field:
+        raise SystemExit(f"--set {assignment!r}: expected ae.FIELD=VALUE or vae.FIELD=VALUE")
+    fields = {f.name: f for f in dataclasses.fields(target)}
+    if field not in fields:
+        raise SystemExit(f"--set {assignment!r}: {section} has no field {field!r} (fields: {', '.join(fields)})")
+    current = getattr(target, field)
+    try:
+        if isinstance(current, bool):
+            if text.lower() not in ("true", "false"):
+                raise ValueError("expected true or false")
+            value = text.lower() == "true"
+        elif isinstance(current, (int, float, str)):
+            value = type(current)(text)
+        else:
+            raise ValueError(f"{type(current).__name__} fields cannot be set from the command line")
+    except ValueError as error:
+        raise SystemExit(f"--set {assignment!r}: {error}") from None
+    setattr(target, field, value)
+    log.info("recipe override: %s.%s = %r (was %r)", section, field, value, current)
+
+
 def train_command(args) -> int:
     from .data import load_dataset
     from .spectral_report import dataset_spectra
@@ -50,6 +79,8 @@ def train_command(args) -> int:
         chosen.partial_views = args.partial_views
     if args.relative_reconstruction:
         chosen.vae.reconstruction_per_dimension = False
+    for assignment in args.set or []:
+        apply_setting(chosen, assignment)
     chosen.ae.supervised = not args.unsupervised
     chosen.ae.full_rotations = args.full_rotations
     dataset = load_dataset(args.dataset, limit=args.limit)
@@ -142,7 +173,7 @@ def export_command(args) -> int:
         raise ValueError(f"{args.run} has no dataset.json: pass --dataset (the training dataset) for its scale")
     metrics = json.loads(Path(args.metrics).read_text()) if args.metrics else None
     training = {**summary, "ae_iterations": chosen.ae_iterations, "vae_iterations": chosen.vae_iterations,
-                "ae_batch": chosen.ae_batch, "vae_batch": chosen.vae_batch}
+                "ae_batch": chosen.ae_batch, "vae_batch": chosen.vae_batch, "partial_views": chosen.partial_views}
     write_bundle(ae, vae, args.out, scale=summary["scale"], recipe_name=chosen.name, training=training,
                  metrics=metrics)
     print(f"bundle written to {args.out}")
@@ -176,6 +207,8 @@ def main(argv=None) -> int:
                           help="fraction of AE inputs that are the side a camera sees (0..1; supervised AE)")
     training.add_argument("--relative-reconstruction", action="store_true",
                           help="VAE L_R without the paper's 1/dim(x_c) (better reconstruction, lower S)")
+    training.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE",
+                          help="override a recipe field, e.g. vae.omega_jacobian=2000 (repeatable; recorded in recipe.json)")
     training.add_argument("--stop-after", choices=["ae"], help="stop after this stage")
     training.add_argument("--init-from", help="reuse another run's trained AE and code bank (compare VAE regimes)")
     training.add_argument("--limit", type=int, help="use only the first N meshes")

@@ -183,6 +183,7 @@ def write_bundle(ae, vae, folder: str | Path, *, scale: float, recipe_name: str,
 def model_card(manifest: dict) -> str:
     m, s, u, t = manifest["model"], manifest["sizes"], manifest["units"], manifest["training"]
     metrics = manifest["metrics"]
+    partial = t.get("partial_views") or 0.0
     lines = [
         f"# GDVAE++ bundle: {m['regime']}, {m['ae_type'].upper()} autoencoder ({m['supervision']}), recipe `{m['recipe']}`",
         "",
@@ -201,6 +202,8 @@ def model_card(manifest: dict) -> str:
         f"{t.get('dataset', '?')}: {t.get('train_meshes', '?')} training meshes of {t.get('train_subjects', '?')} "
         f"subjects; families {', '.join(t.get('families', [])) or '?'}.",
         f"AE iterations {t.get('ae_iterations', '?')}, VAE iterations {t.get('vae_iterations', '?')}.",
+        f"Partial views: {partial:.0%} of the AE's input copies were the side a camera sees "
+        "(the AE still reconstructs the whole surface)." if partial else "Partial views: none (whole surfaces only).",
         "",
         "## Measured on held-out subjects",
     ]
@@ -209,14 +212,20 @@ def model_card(manifest: dict) -> str:
                     "heading_error_median_deg", "shape_from_spectrum_d_C"):
             if metrics.get(key) is not None:
                 lines.append(f"- {key}: {metrics[key]:.4g}")
+        views = metrics.get("partial_views")
+        if views:
+            lines.append(f"- from single camera-like views ({views['views_per_shape']} per mesh): "
+                         f"S {views['S']:.4g}, C_X {views['C_X']:.4g}, "
+                         f"heading error median {views['heading_error_median_deg']:.4g} deg")
         lines.append(f"- command: `{metrics.get('command', 'python -m gdvae evaluate')}`")
     else:
         lines.append("- not evaluated")
     lines += [
         "",
         "## Limits",
-        "- Trained on complete, synthetic surfaces (the sim's quadruped and biped families); single-view",
-        "  depth clouds are partial, so codes from them are noisier than on the test set.",
+        "- Trained on synthetic surfaces (the sim's quadruped and biped families) only.",
+        "- Single-view depth clouds are partial: codes from them are noisier than from whole surfaces"
+        + (" (the single-view figures above say by how much)." if partial else ", and this bundle never saw one."),
         "- Not for safety-critical decisions.",
         "",
     ]

@@ -223,8 +223,10 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         raise ValueError("partial views need the supervised AE (its target is the whole canonical cloud)")
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    if init_from is not None:  # record the AE budget actually spent, for the bundle's manifest
-        chosen.ae_iterations = json.loads((Path(init_from) / "recipe.json").read_text())["ae_iterations"]
+    if init_from is not None:  # record how the reused AE was actually trained, for the bundle's manifest
+        source_recipe = json.loads((Path(init_from) / "recipe.json").read_text())
+        chosen.ae_iterations = source_recipe["ae_iterations"]
+        chosen.partial_views = source_recipe.get("partial_views", 0.0)
     (run_dir / "recipe.json").write_text(json.dumps(asdict(chosen), indent=2, default=str))
     (run_dir / "dataset.json").write_text(json.dumps(dataset_summary(dataset), indent=2))
     torch.manual_seed(chosen.seed)

@@ -95,6 +95,7 @@ fn replaying_the_sample_publishes_every_frame_in_order_on_zenoh() {
         states.len()
     );
     let sizes = Bundle::load(shipped_bundle()).unwrap().manifest.sizes;
+    let mut identity_changes = Vec::new();
     for (index, (key, payload)) in states.iter().enumerate() {
         assert_eq!(key, "gdvae/e2e/walk/state");
         let state: State = serde_json::from_slice(payload).unwrap();
@@ -111,7 +112,17 @@ fn replaying_the_sample_publishes_every_frame_in_order_on_zenoh() {
         );
         let norm: f32 = state.filtered.q.iter().map(|c| c * c).sum::<f32>().sqrt();
         assert!((norm - 1.0).abs() < 1e-3);
+        if state.event.is_some() {
+            identity_changes.push((state.sequence, state.shape.identity));
+        }
     }
+    // The recording swaps the quadruped for a biped at frame 75; with the shipped bundle and the
+    // default gate that is the one identity change, found within switch_frames plus a few frames.
+    let switch_frames = Config::default().track.switch_frames as u64;
+    assert!(
+        identity_changes.len() == 1 && (75..=75 + 2 * switch_frames).contains(&identity_changes[0].0),
+        "identity changes (frame, identity): {identity_changes:?}; expected one, shortly after frame 75"
+    );
 }
 
 #[test]
