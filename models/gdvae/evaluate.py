@@ -18,13 +18,13 @@ log = logging.getLogger(__name__)
 @torch.no_grad()
 def encode_all(ae, vae, clouds: torch.Tensor, rotations: torch.Tensor, spectra: torch.Tensor | None, batch: int = 64):
     """AE and VAE codes of rotated clouds: q, x_c, posterior means of z_R, z_E, z_I, and z~_I."""
-    out = {k: [] for k in ("q", "x_c", "mu_R", "mu_E", "mu_I", "lv_I")}
+    out = {k: [] for k in ("q", "x_c", "mu_R", "mu_E", "mu_I", "lv_R", "lv_E", "lv_I")}
     for start in range(0, len(clouds), batch):
         inputs = rotate(clouds[start : start + batch], rotations[start : start + batch])
         q = ae.encode_rotation(inputs)
         x_c, _ = ae.encode_shape(inputs, quaternion_to_matrix(q))
-        (mu_r, _), (mu_e, _), (mu_i, lv_i) = vae.encode(q, x_c)
-        for key, value in zip(out, (q, x_c, mu_r, mu_e, mu_i, lv_i)):
+        (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = vae.encode(q, x_c)
+        for key, value in zip(out, (q, x_c, mu_r, mu_e, mu_i, lv_r, lv_e, lv_i)):
             out[key].append(value)
     codes = {k: torch.cat(v) for k, v in out.items()}
     if spectra is not None:
@@ -217,6 +217,25 @@ def partial_view_metrics(ae, vae, dataset: MeshDataset, indices: list[int], clou
     return metrics
 
 
+def posterior_statistics(codes: dict, active_threshold: float = 0.01) -> dict:
+    """Per latent group, how much the encoder's posterior says about its input: the median
+    posterior standard deviation, the median spread of the means across shapes, and the active
+    units (dimensions whose means vary across shapes by more than `active_threshold` in variance,
+    Burda et al. 2016). A group whose posterior deviation is the prior's (1) and whose means do
+    not move has collapsed: the decoder cannot use it."""
+    statistics = {}
+    for group in ("R", "E", "I"):
+        mean, log_variance = codes[f"mu_{group}"], codes[f"lv_{group}"]
+        spread = mean.var(0)
+        statistics[f"z_{group}"] = {
+            "posterior_std_median": float(torch.exp(0.5 * log_variance).median()),
+            "mean_std_across_shapes_median": float(spread.sqrt().median()),
+            "active_units": int((spread > active_threshold).sum()),
+            "dimensions": int(mean.shape[1]),
+        }
+    return statistics
+
+
 @torch.no_grad()
 def vae_metrics(ae, vae, dataset: MeshDataset, indices: list[int], clouds: torch.Tensor, fresh: torch.Tensor,
                 spectra: np.ndarray, rng: np.random.Generator, full_rotations: bool, sim_binary: str | None) -> dict:
@@ -232,6 +251,7 @@ def vae_metrics(ae, vae, dataset: MeshDataset, indices: list[int], clouds: torch
     recon = rotate(ae.decode(x_hat), quaternion_to_matrix(q_hat))
     metrics["vae_d_C"] = float(chamfer(recon, rotate(fresh, rotations)).mean())
     metrics["log_p_lambda"] = float(vae.flow.log_prob(spectrum).mean())
+    metrics["posterior"] = posterior_statistics(codes)
 
     # Shape from spectrum: decode (z_E = 0, z_I = f(lambda)), compare with the canonical shape.
     _, x_spectral = vae.decode(codes["mu_R"], torch.zeros_like(codes["mu_E"]), codes["mu_I_spectral"])

@@ -214,9 +214,10 @@ def model_card(manifest: dict) -> str:
                 lines.append(f"- {key}: {metrics[key]:.4g}")
         views = metrics.get("partial_views")
         if views:
+            shown = {key: "n/a" if views.get(key) is None else f"{views[key]:.4g}"
+                     for key in ("S", "C_X", "heading_error_median_deg")}
             lines.append(f"- from single camera-like views ({views['views_per_shape']} per mesh): "
-                         f"S {views['S']:.4g}, C_X {views['C_X']:.4g}, "
-                         f"heading error median {views['heading_error_median_deg']:.4g} deg")
+                         f"S {shown['S']}, C_X {shown['C_X']}, heading error median {shown['heading_error_median_deg']} deg")
         lines.append(f"- command: `{metrics.get('command', 'python -m gdvae evaluate')}`")
     else:
         lines.append("- not evaluated")

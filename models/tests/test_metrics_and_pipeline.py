@@ -40,6 +40,36 @@ def test_random_retrieval_scores_about_zero_and_oracle_codes_score_high():
     assert result["S"] > 1.0
 
 
+def test_posterior_statistics_tell_a_collapsed_group_from_an_informative_one():
+    from gdvae.evaluate import posterior_statistics
+
+    shapes = 200
+    codes = {
+        "mu_R": torch.randn(shapes, 3), "lv_R": torch.full((shapes, 3), -4.0),  # informative
+        "mu_E": 1e-3 * torch.randn(shapes, 10), "lv_E": torch.zeros(shapes, 10),  # the prior: collapsed
+        "mu_I": torch.cat([torch.randn(shapes, 2), torch.zeros(shapes, 20)], 1), "lv_I": torch.zeros(shapes, 22),
+    }
+    statistics = posterior_statistics(codes)
+    assert statistics["z_R"]["active_units"] == 3 and abs(statistics["z_R"]["posterior_std_median"] - np.exp(-2)) < 1e-6
+    assert statistics["z_E"]["active_units"] == 0 and statistics["z_E"]["posterior_std_median"] == 1.0
+    assert statistics["z_I"]["active_units"] == 2 and statistics["z_I"]["dimensions"] == 22
+
+
+def test_recipe_overrides_are_typed_and_unknown_fields_refused():
+    from gdvae.cli import apply_setting
+    from gdvae.train import recipe
+
+    chosen = recipe("smoke")
+    apply_setting(chosen, "vae.omega_jacobian=2000")
+    apply_setting(chosen, "vae.reconstruction_per_dimension=false")
+    apply_setting(chosen, "ae.copies=2")
+    assert (chosen.vae.omega_jacobian, chosen.vae.reconstruction_per_dimension, chosen.ae.copies) == (2000.0, False, 2)
+    for bad in ("vae.omega_jacobain=1", "vea.omega_jacobian=1", "vae.omega_jacobian", "ae.copies=two",
+                "vae.reconstruction_per_dimension=maybe", "ae.rotation_hidden=1"):
+        with pytest.raises(SystemExit):
+            apply_setting(chosen, bad)
+
+
 def test_coverage_and_fidelity_of_a_set_against_itself():
     real = torch.randn(10, 32, 3)
     coverage, fidelity = coverage_and_fidelity(real.clone(), real)
@@ -63,6 +93,8 @@ def test_smoke_training_evaluation_and_export(tiny_dataset, tmp_path):
     partial = measured["partial_views"]
     assert partial["views_per_shape"] == 5 and set(partial["retrieval"]) == {"blobA", "blobB"}
     assert np.isfinite(partial["C_X"]) and np.isfinite(partial["heading_error_median_deg"])
+    assert set(measured["posterior"]) == {"z_R", "z_E", "z_I"}
+    assert measured["posterior"]["z_I"]["dimensions"] == 22
     diagnostics = measured["rotation_diagnostics"]
     assert set(diagnostics["heading"]) == {"blobA", "blobB"} and np.isfinite(diagnostics["C_X_true_rotation"])
     assert main(["export", str(run), "--out", str(bundle), "--metrics", str(metrics)]) == 0
