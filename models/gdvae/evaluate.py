@@ -153,8 +153,8 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray | None, split: s
         raise ValueError(f"split {split!r} has {len(indices)} meshes; at least 4 are needed")
     points = ae.config.points
     sampler = PointSampler(dataset, indices, points, seed)
-    clouds = torch.stack([sampler.clouds(i, 1)[0] for i in range(len(indices))])
-    fresh = torch.stack([sampler.clouds(i, 1)[0] for i in range(len(indices))])
+    clouds = sampler.one_each()
+    fresh = sampler.one_each()
     metrics: dict = {"split": split, "shapes": len(indices), "points": points}
 
     # AE: reconstruction, canonicalization, heading, over five rotated copies.
@@ -288,7 +288,7 @@ def vae_metrics(ae, vae, dataset: MeshDataset, indices: list[int], clouds: torch
         draws = [family_retrieval(dataset, indices, codes)]
         for _ in range(RETRIEVAL_DRAWS - 1):
             sampler = PointSampler(dataset, indices, ae.config.points, int(rng.integers(1 << 31)))
-            redrawn = torch.stack([sampler.clouds(i, 1)[0] for i in range(len(indices))])
+            redrawn = sampler.one_each()
             redrawn_codes = encode_all(ae, vae, redrawn, random_rotation_matrices(len(redrawn), full=full_rotations),
                                        spectrum)
             draws.append(family_retrieval(dataset, indices, redrawn_codes))

@@ -48,7 +48,7 @@ def make_figures(ae, vae, dataset: MeshDataset, spectra: np.ndarray, folder: str
     rng = np.random.default_rng(seed)
     indices = dataset.indices(split)
     sampler = PointSampler(dataset, indices, ae.config.points, seed)
-    clouds = torch.stack([sampler.clouds(i, 1)[0] for i in range(len(indices))])
+    clouds = sampler.one_each()
     written = []
 
     # t-SNE of x_c under rotation.

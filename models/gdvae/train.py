@@ -148,6 +148,10 @@ class PointSampler:
     def clouds(self, index: int, count: int) -> torch.Tensor:
         return torch.from_numpy(np.stack([sample_surface(self.meshes[index], self.points, self.rng) for _ in range(count)]))
 
+    def one_each(self) -> torch.Tensor:
+        """[meshes, points, 3]: one fresh sample of every mesh, in order."""
+        return torch.stack([self.clouds(i, 1)[0] for i in range(len(self.meshes))])
+
 
 @dataclass
 class Progress:
