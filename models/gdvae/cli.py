@@ -127,6 +127,8 @@ def evaluate_command(args) -> int:
                          "--ae-only evaluates its autoencoder")
     if args.figures and vae is None:
         raise ValueError("--figures needs the VAE; drop --ae-only")
+    if args.retrieval_only and (args.ae_only or args.figures):
+        raise ValueError("--retrieval-only goes with neither --ae-only nor --figures")
     if args.partial_views < 0:
         raise ValueError(f"--partial-views must be 0 or more, got {args.partial_views}")
     dataset = load_dataset(args.dataset, limit=args.limit)
@@ -135,7 +137,7 @@ def evaluate_command(args) -> int:
         spectra = dataset_spectra(dataset, vae.config.spectrum, SpectrumCache(Path(args.dataset) / ".spectra"))
     sim = args.sim or default_sim_binary()
     metrics = evaluate(ae, vae, dataset, spectra, split=args.split, full_rotations=chosen.ae.full_rotations,
-                       sim_binary=sim, partial_views=args.partial_views)
+                       sim_binary=sim, partial_views=args.partial_views, retrieval_only=args.retrieval_only)
     if state["stage"] != "done":  # a run still training: say how far it was
         metrics["checkpoint"] = {"stage": state["stage"], "iteration": state["iteration"]}
     metrics = finite_or_null(metrics)
@@ -224,6 +226,8 @@ def main(argv=None) -> int:
     evaluation.add_argument("--limit", type=int)
     evaluation.add_argument("--ae-only", action="store_true",
                             help="only the autoencoder's metrics (also for a run still in its AE stage)")
+    evaluation.add_argument("--retrieval-only", action="store_true",
+                            help="only retrieval, S (five draws) and the posterior statistics: minutes, for comparing runs")
     evaluation.add_argument("--partial-views", type=int, default=5, metavar="N",
                             help="camera-like views per mesh for the partial-view metrics (0: skip them)")
     evaluation.set_defaults(handler=evaluate_command)

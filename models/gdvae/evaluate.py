@@ -140,9 +140,11 @@ def mean_s(retrieval: dict) -> float | None:
 
 @torch.no_grad()
 def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray | None, split: str = "test", seed: int = 0,
-             full_rotations: bool = False, sim_binary: str | None = None, partial_views: int = 5) -> dict:
+             full_rotations: bool = False, sim_binary: str | None = None, partial_views: int = 5,
+             retrieval_only: bool = False) -> dict:
     """Every metric on one split. `vae` None: the AE's metrics only. `partial_views`: view
-    directions per mesh for the camera-like partial-view metrics (0: skip them)."""
+    directions per mesh for the camera-like partial-view metrics (0: skip them). `retrieval_only`:
+    only retrieval, S and the posterior statistics (minutes, for comparing runs)."""
     ae.eval()
     if vae is not None:
         vae.eval()
@@ -156,6 +158,15 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray | None, split: s
     clouds = sampler.one_each()
     fresh = sampler.one_each()
     metrics: dict = {"split": split, "shapes": len(indices), "points": points}
+    if retrieval_only:
+        if vae is None or not dataset.has_ground_truth:
+            raise ValueError("retrieval needs the VAE and a dataset with ground truth")
+        spectrum = torch.from_numpy(spectra[indices]).float()
+        with torch.no_grad():
+            codes = encode_all(ae, vae, clouds, random_rotation_matrices(len(clouds), full=full_rotations), spectrum)
+            metrics["posterior"] = posterior_statistics(codes)
+            metrics.update(retrieval_metrics(ae, vae, dataset, indices, codes, spectrum, rng, full_rotations))
+        return metrics
 
     # AE: reconstruction, canonicalization, heading, over five rotated copies.
     chamfers, headings, canonicals = [], [], []
@@ -226,6 +237,25 @@ def partial_view_metrics(ae, vae, dataset: MeshDataset, indices: list[int], clou
     return metrics
 
 
+def retrieval_metrics(ae, vae, dataset: MeshDataset, indices: list[int], codes: dict, spectrum: torch.Tensor,
+                      rng: np.random.Generator, full_rotations: bool) -> dict:
+    """Pose-aware retrieval and S per family. One draw of point samples and rotations moves S by
+    about 0.2 on 240 shapes, so the scores are averaged over RETRIEVAL_DRAWS draws (`codes` is the
+    first) and the per-draw S and their spread are reported."""
+    draws = [family_retrieval(dataset, indices, codes)]
+    for _ in range(RETRIEVAL_DRAWS - 1):
+        sampler = PointSampler(dataset, indices, ae.config.points, int(rng.integers(1 << 31)))
+        redrawn = sampler.one_each()
+        redrawn_codes = encode_all(ae, vae, redrawn, random_rotation_matrices(len(redrawn), full=full_rotations),
+                                   spectrum)
+        draws.append(family_retrieval(dataset, indices, redrawn_codes))
+    metrics: dict = {"retrieval": leafwise_mean(draws)}
+    if metrics["retrieval"]:
+        per_draw = [mean_s(draw) for draw in draws]
+        metrics.update(S=mean_s(metrics["retrieval"]), S_draws=per_draw, S_std=float(np.std(per_draw)))
+    return metrics
+
+
 def posterior_statistics(codes: dict, active_threshold: float = 0.01) -> dict:
     """Per latent group, how much the encoder's posterior says about its input: the median
     posterior standard deviation, the median spread of the means across shapes, and the active
@@ -283,21 +313,7 @@ def vae_metrics(ae, vae, dataset: MeshDataset, indices: list[int], clouds: torch
 
     # Pose-aware retrieval and the disentanglement score, per family.
     if dataset.has_ground_truth:
-        # One draw of point samples and rotations moves S by about 0.2 on 240 shapes, so the
-        # retrieval scores are averaged over RETRIEVAL_DRAWS draws; their spread is reported.
-        draws = [family_retrieval(dataset, indices, codes)]
-        for _ in range(RETRIEVAL_DRAWS - 1):
-            sampler = PointSampler(dataset, indices, ae.config.points, int(rng.integers(1 << 31)))
-            redrawn = sampler.one_each()
-            redrawn_codes = encode_all(ae, vae, redrawn, random_rotation_matrices(len(redrawn), full=full_rotations),
-                                       spectrum)
-            draws.append(family_retrieval(dataset, indices, redrawn_codes))
-        metrics["retrieval"] = leafwise_mean(draws)
-        if metrics["retrieval"]:
-            metrics["S"] = mean_s(metrics["retrieval"])
-            per_draw = [mean_s(draw) for draw in draws]
-            metrics["S_draws"] = per_draw
-            metrics["S_std"] = float(np.std(per_draw))
+        metrics.update(retrieval_metrics(ae, vae, dataset, indices, codes, spectrum, rng, full_rotations))
         if not sim_binary:
             log.info("no sim binary: the pose-transfer error is skipped")
         elif not made_by_sim(dataset):

@@ -93,6 +93,12 @@ def test_smoke_training_evaluation_and_export(tiny_dataset, tmp_path):
     partial = measured["partial_views"]
     assert partial["views_per_shape"] == 5 and set(partial["retrieval"]) == {"blobA", "blobB"}
     assert np.isfinite(partial["C_X"]) and np.isfinite(partial["heading_error_median_deg"])
+    assert len(measured["S_draws"]) == 5
+    quick = tmp_path / "quick.json"
+    assert main(["evaluate", str(run), str(tiny_dataset), "--retrieval-only", "--out", str(quick)]) == 0
+    screened = json.loads(quick.read_text())
+    assert set(screened["retrieval"]) == {"blobA", "blobB"} and len(screened["S_draws"]) == 5
+    assert "C_X" not in screened and "coverage" not in screened and "posterior" in screened
     assert set(measured["posterior"]) == {"z_R", "z_E", "z_I"}
     assert measured["posterior"]["z_I"]["dimensions"] == 22
     diagnostics = measured["rotation_diagnostics"]
