@@ -211,7 +211,9 @@ def model_card(manifest: dict) -> str:
         for key in ("S", "C_X", "d_C", "C_3D", "vae_d_C", "coverage", "fidelity", "log_p_lambda",
                     "heading_error_median_deg", "shape_from_spectrum_d_C"):
             if metrics.get(key) is not None:
-                lines.append(f"- {key}: {metrics[key]:.4g}")
+                spread = f" (mean of {len(metrics['S_draws'])} draws, standard deviation {metrics['S_std']:.2g})" \
+                    if key == "S" and metrics.get("S_std") is not None else ""
+                lines.append(f"- {key}: {metrics[key]:.4g}{spread}")
         views = metrics.get("partial_views")
         if views:
             shown = {key: "n/a" if views.get(key) is None else f"{views[key]:.4g}"
