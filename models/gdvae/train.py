@@ -350,7 +350,10 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int) -> N
     vae.train()
     for iteration in range(start, total):
         batch = torch.randint(0, size, (min(chosen.vae_batch, size),), generator=generator)
-        losses = vae_loss(vae, bank["q"][batch], bank["x_c"][batch], bank["spectrum"][batch], dataset_size=size)
+        warmup = vae.config.beta_warmup_iterations
+        beta_scale = min(1.0, iteration / warmup) if warmup > 0 else 1.0
+        losses = vae_loss(vae, bank["q"][batch], bank["x_c"][batch], bank["spectrum"][batch], dataset_size=size,
+                          beta_scale=beta_scale)
         optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
         torch.nn.utils.clip_grad_norm_(vae.parameters(), 100.0)

@@ -59,6 +59,9 @@ class VAEConfig:
     # that leaves the reconstruction gradient ~1/n of the KL terms' and the decoder collapses to
     # the mean code (relative error ~0.86 after 3000 iterations); False drops the 1/n.
     reconstruction_per_dimension: bool = True
+    # Not in the paper: ramp the four HFVAE betas linearly from 0 over this many iterations, so
+    # the decoder can learn to use z_E before its information costs anything (0: off).
+    beta_warmup_iterations: int = 0
 
     @property
     def n_intrinsic(self) -> int:
@@ -172,8 +175,9 @@ class VAELosses:
 
 
 def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: torch.Tensor,
-             dataset_size: int, with_jacobian: bool = True) -> VAELosses:
-    """The full objective L_HF + L_lambda + L_F + L_D on a batch, in the configured regime."""
+             dataset_size: int, with_jacobian: bool = True, beta_scale: float = 1.0) -> VAELosses:
+    """The full objective L_HF + L_lambda + L_F + L_D on a batch, in the configured regime.
+    `beta_scale` multiplies the four HFVAE betas (the warm-up)."""
     c = model.config
     (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = model.encode(q, x_c)
     flow_mean, log_det = model.flow(spectrum)
@@ -195,8 +199,9 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
         dataset_size,
     )
     hf = (c.omega_reconstruction * (reconstruction + c.omega_quaternion * rotation)
-          + c.beta_intra_tc * terms["intra_group_tc"] + c.beta_dimension_kl * terms["dimension_kl"]
-          + c.beta_mutual_information * terms["mutual_information"] + c.beta_inter_tc * terms["inter_group_tc"])
+          + beta_scale * (c.beta_intra_tc * terms["intra_group_tc"] + c.beta_dimension_kl * terms["dimension_kl"]
+                          + c.beta_mutual_information * terms["mutual_information"]
+                          + c.beta_inter_tc * terms["inter_group_tc"]))
 
     prior = -0.5 * (flow_mean.pow(2).sum(-1) + c.n_intrinsic * torch.log(torch.tensor(2 * torch.pi)))
     log_likelihood = (prior + log_det).mean()

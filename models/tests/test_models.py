@@ -171,6 +171,27 @@ def test_reconstruction_normalisation_per_dimension_or_relative():
     assert recipe("paper").vae.reconstruction_per_dimension is True
 
 
+def test_beta_warmup_scales_only_the_hfvae_terms():
+    torch.manual_seed(0)
+    model = LatentVAE(small_vae())
+    q = torch.nn.functional.normalize(torch.randn(8, 4), dim=-1)
+    x_c, spectra = torch.randn(8, 24), torch.rand(8, 6).cumsum(-1) + 1
+    model.flow.input.fit(spectra)
+    totals, parts = {}, {}
+    for scale in (0.0, 0.5, 1.0):
+        torch.manual_seed(1)
+        losses = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False, beta_scale=scale)
+        totals[scale], parts[scale] = float(losses.total), losses.parts
+    c = model.config
+    p = parts[1.0]
+    hf = (c.beta_intra_tc * p["intra_group_tc"] + c.beta_dimension_kl * p["dimension_kl"]
+          + c.beta_mutual_information * p["mutual_information"] + c.beta_inter_tc * p["inter_group_tc"])
+    terms = lambda scale: {k: v for k, v in parts[scale].items() if k != "total"}  # noqa: E731
+    assert terms(0.0) == terms(1.0)  # the same sample: only the weighting changes
+    assert totals[1.0] - totals[0.0] == pytest.approx(hf, rel=1e-4)
+    assert totals[0.5] - totals[0.0] == pytest.approx(hf / 2, rel=1e-4)
+
+
 def test_partial_views_show_the_camera_side_and_train_against_the_whole_cloud():
     import trimesh
 
