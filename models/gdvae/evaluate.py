@@ -156,17 +156,16 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray | None, split: s
     points = ae.config.points
     sampler = PointSampler(dataset, indices, points, seed)
     clouds = sampler.one_each()
-    fresh = sampler.one_each()
     metrics: dict = {"split": split, "shapes": len(indices), "points": points}
     if retrieval_only:
         if vae is None or not dataset.has_ground_truth:
             raise ValueError("retrieval needs the VAE and a dataset with ground truth")
         spectrum = torch.from_numpy(spectra[indices]).float()
-        with torch.no_grad():
-            codes = encode_all(ae, vae, clouds, random_rotation_matrices(len(clouds), full=full_rotations), spectrum)
-            metrics["posterior"] = posterior_statistics(codes)
-            metrics.update(retrieval_metrics(ae, vae, dataset, indices, codes, spectrum, rng, full_rotations))
+        codes = encode_all(ae, vae, clouds, random_rotation_matrices(len(clouds), full=full_rotations), spectrum)
+        metrics["posterior"] = posterior_statistics(codes)
+        metrics.update(retrieval_metrics(ae, vae, dataset, indices, codes, spectrum, rng, full_rotations))
         return metrics
+    fresh = sampler.one_each()
 
     # AE: reconstruction, canonicalization, heading, over five rotated copies.
     chamfers, headings, canonicals = [], [], []
