@@ -10,6 +10,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::cloud::Unit;
 use crate::prepare::Sampling;
+// The track stage owns its settings; they are re-exported here with the rest of the config.
+pub use crate::track::{ChangeDetector, HeadingMode, Smoothing, TrackSettings};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
@@ -124,6 +126,9 @@ pub struct PrepareSettings {
     /// Region of interest in the gravity frame (metres): [min_x, min_y, min_z, max_x, max_y, max_z].
     pub crop: Option<[f32; 6]>,
     pub outliers: OutlierSettings,
+    /// Keep only the largest cluster of points joined by neighbours closer than this (metres):
+    /// drops what the crop leaves of the floor's noise and stray clutter. 0 keeps every point.
+    pub cluster_m: f32,
     pub sampling: Sampling,
     /// Voxel edge (metres) for `sampling = "voxel"`.
     pub voxel_m: f32,
@@ -144,6 +149,7 @@ impl Default for PrepareSettings {
             ransac_iterations: 100,
             crop: None,
             outliers: OutlierSettings::default(),
+            cluster_m: 0.0,
             sampling: Sampling::Farthest,
             voxel_m: 0.01,
             min_points: 64,
@@ -181,47 +187,6 @@ impl Default for OutlierSettings {
             std_ratio: 2.0,
             radius_m: 0.05,
             min_neighbours: 3,
-        }
-    }
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Smoothing {
-    None,
-    OneEuro,
-}
-
-#[derive(Debug, Clone, Deserialize, Serialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct TrackSettings {
-    /// A frame's z_I is an outlier when its mean squared standardized distance to the fused
-    /// estimate (per dimension) exceeds this.
-    pub shape_gate: f32,
-    /// This many consecutive outlier frames mean a new object: the shape filter restarts on them.
-    pub switch_frames: usize,
-    /// Floor on each fused z_I variance, so the filter never becomes certain beyond what
-    /// correlated frames justify.
-    pub min_shape_variance: f32,
-    /// Smoothing of z_E and the rotation.
-    pub smoothing: Smoothing,
-    /// One-euro filter: cutoff at rest (Hz) and its increase per unit of speed.
-    pub min_cutoff_hz: f32,
-    pub beta: f32,
-    /// Frame rate assumed when frames carry no usable stamps.
-    pub nominal_rate_hz: f32,
-}
-
-impl Default for TrackSettings {
-    fn default() -> Self {
-        Self {
-            shape_gate: 1.0,
-            switch_frames: 5,
-            min_shape_variance: 1e-4,
-            smoothing: Smoothing::OneEuro,
-            min_cutoff_hz: 1.0,
-            beta: 0.5,
-            nominal_rate_hz: 30.0,
         }
     }
 }
@@ -465,17 +430,14 @@ impl Config {
         if (p.auto_ground || p.remove_ground) && p.ransac_iterations == 0 {
             return Err("prepare.ransac_iterations must be at least 1 when the ground is estimated".into());
         }
+        if !(p.cluster_m >= 0.0 && p.cluster_m.is_finite()) {
+            return Err(format!("prepare.cluster_m = {} must be >= 0 (0: off)", p.cluster_m));
+        }
         let o = &p.outliers;
         if o.method != OutlierMethod::None && (o.neighbours == 0 || !(o.std_ratio > 0.0) || !(o.radius_m > 0.0)) {
             return Err("prepare.outliers: neighbours, std_ratio and radius_m must be positive".into());
         }
-        let t = &self.track;
-        if !(t.shape_gate > 0.0) || t.switch_frames == 0 || !(t.min_shape_variance > 0.0) {
-            return Err("track.shape_gate, track.switch_frames and track.min_shape_variance must be positive".into());
-        }
-        if !(t.min_cutoff_hz > 0.0) || !(t.beta >= 0.0) || !(t.nominal_rate_hz > 0.0) {
-            return Err("track.min_cutoff_hz and track.nominal_rate_hz must be positive, track.beta >= 0".into());
-        }
+        self.track.validate()?;
         if !matches!(self.zenoh.mode.as_str(), "peer" | "client") {
             return Err(format!(
                 "zenoh.mode '{}' must be \"peer\" or \"client\"",

@@ -10,6 +10,7 @@ pub mod benchmark;
 pub mod bundle;
 pub mod cloud;
 pub mod config;
+pub mod evaluate;
 pub mod pipeline;
 pub mod prepare;
 pub mod publish;

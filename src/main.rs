@@ -10,7 +10,8 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use gdvae_node::bundle::Bundle;
 use gdvae_node::cloud::{Frame, PointCloud, Unit};
-use gdvae_node::config::{Config, Format, SourceKind, SourceSettings};
+use gdvae_node::config::{Config, Format, SourceKind};
+use gdvae_node::evaluate::EvaluateOptions;
 use gdvae_node::pipeline::{self, RunOptions, RunSummary};
 use gdvae_node::prepare::{Preparer, Sampling};
 use gdvae_node::publish::open_session;
@@ -72,6 +73,35 @@ enum Command {
         /// Skip the ONNX-Runtime-alone comparison.
         #[arg(long)]
         no_baseline: bool,
+    },
+    /// Tracking measured against ground truth: replays sim recordings (their `/sim/ground_truth`
+    /// channel) through the pipeline and reports heading and position errors, identity changes
+    /// found (recall, false changes, delay) and identity retrieval, per recording and overall.
+    Evaluate {
+        /// MCAP recordings (or rosbag2 folders); one stream each.
+        #[arg(required = true)]
+        recordings: Vec<PathBuf>,
+        /// Settings to start from (its sources and publishing are replaced; the crop, model and
+        /// track settings are used).
+        #[arg(long, default_value = "config/replay.toml")]
+        config: PathBuf,
+        #[arg(long)]
+        bundle: Option<PathBuf>,
+        /// Override a track setting, e.g. `--set cusum_threshold=6` (repeatable; for tuning).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+        /// A true identity change counts as found when reported within this many frames.
+        #[arg(long, default_value_t = 10)]
+        tolerance_frames: usize,
+        /// Keep the config's sensor pose instead of the recording's `world_from_camera`.
+        #[arg(long)]
+        keep_sensor_pose: bool,
+        /// Write the report as JSON to this file ("-": stdout, instead of the table).
+        #[arg(long)]
+        out: Option<String>,
+        /// Write one PNG per recording into this folder.
+        #[arg(long)]
+        plots: Option<PathBuf>,
     },
     /// Encode one point-cloud file (PLY, PCD, OBJ, XYZ/CSV) and print the codes as JSON.
     Encode {
@@ -168,11 +198,18 @@ fn run(command: Command) -> Result<()> {
             no_baseline,
         } => {
             let mut config = starting_config(config, bundle)?;
-            config.sources = replay_sources(&inputs, speed)?;
+            config.sources = gdvae_node::sources::replay_sources(&inputs, speed).map_err(anyhow::Error::msg)?;
             config.publish.zenoh = zenoh;
             config.publish.jsonl = jsonl;
             config.validate().map_err(anyhow::Error::msg)?;
-            let summary = run_pipeline(&config, RunOptions { lossless_publish: true }, false)?;
+            let summary = run_pipeline(
+                &config,
+                RunOptions {
+                    lossless_publish: true,
+                    ..RunOptions::default()
+                },
+                false,
+            )?;
             let baseline = if no_baseline {
                 None
             } else {
@@ -189,6 +226,27 @@ fn run(command: Command) -> Result<()> {
             print_report(&summary, baseline.as_ref().map(|b| (b, &config)), json)?;
             Ok(())
         }
+        Command::Evaluate {
+            recordings,
+            config,
+            bundle,
+            set,
+            tolerance_frames,
+            keep_sensor_pose,
+            out,
+            plots,
+        } => evaluate(
+            &recordings,
+            starting_config(Some(config), bundle)?,
+            &set,
+            EvaluateOptions {
+                tolerance_frames,
+                pose_from_truth: !keep_sensor_pose,
+                ..EvaluateOptions::default()
+            },
+            out.as_deref(),
+            plots.as_deref(),
+        ),
         Command::Encode {
             file,
             config,
@@ -338,6 +396,206 @@ fn run(command: Command) -> Result<()> {
     }
 }
 
+/// `evaluate`: the recordings replayed through the pipeline, every state collected in process and
+/// measured against the ground truth.
+fn evaluate(
+    inputs: &[PathBuf],
+    mut config: Config,
+    set: &[String],
+    options: EvaluateOptions,
+    out: Option<&str>,
+    plots: Option<&Path>,
+) -> Result<()> {
+    config.track = track_overrides(&config.track, set)?;
+    let recordings = gdvae_node::evaluate::recordings(inputs)?;
+    for r in recordings.iter().filter(|r| r.truth.is_empty()) {
+        log::warn!(
+            "{}: no {} channel; reporting what needs no ground truth (identity changes, heading smoothness)",
+            r.path.display(),
+            gdvae_node::evaluate::truth::GROUND_TRUTH_TOPIC
+        );
+    }
+    config.sources = gdvae_node::evaluate::sources(&recordings, &options)?;
+    config.publish.zenoh = false;
+    config.publish.jsonl = None;
+    config.validate().map_err(anyhow::Error::msg)?;
+    let (tx, rx) = crossbeam_channel::unbounded();
+    let options_run = RunOptions {
+        lossless_publish: true,
+        collect: Some(tx),
+    };
+    let summary = run_pipeline(&config, options_run, false)?;
+    let outputs: Vec<_> = rx.try_iter().collect();
+    let report = gdvae_node::evaluate::report(&recordings, &outputs, &options);
+    if let Some(folder) = plots {
+        let threshold = match config.track.change_detector {
+            gdvae_node::config::ChangeDetector::Cusum => Some(config.track.cusum_threshold as f64),
+            gdvae_node::config::ChangeDetector::Consecutive => None,
+        };
+        let written = gdvae_node::evaluate::write_plots(&report, folder, config.track.shape_gate as f64, threshold)?;
+        eprintln!("evaluate: {} plot(s) in {}", written.len(), folder.display());
+    }
+    match out {
+        Some("-") => println!("{}", serde_json::to_string_pretty(&report)?),
+        Some(path) => {
+            std::fs::write(path, serde_json::to_string_pretty(&report)?).with_context(|| format!("writing {path}"))?;
+            print_evaluation(&report, &summary);
+            eprintln!("evaluate: report in {path}");
+        }
+        None => print_evaluation(&report, &summary),
+    }
+    if report.overall.matched == 0 && report.overall.with_truth > 0 {
+        bail!("no state matched any ground-truth frame by sensor stamp");
+    }
+    Ok(())
+}
+
+/// `--set KEY=VALUE` over `[track]`, typed by the setting it replaces (unknown keys refused).
+fn track_overrides(
+    settings: &gdvae_node::config::TrackSettings,
+    set: &[String],
+) -> Result<gdvae_node::config::TrackSettings> {
+    let mut table = toml::Table::try_from(settings).context("track settings")?;
+    for item in set {
+        let (key, value) = item
+            .split_once('=')
+            .with_context(|| format!("--set {item}: expected KEY=VALUE"))?;
+        let key = key.trim().trim_start_matches("track.");
+        let value: toml::Value = toml::from_str::<toml::Table>(&format!("v = {value}"))
+            .or_else(|_| toml::from_str::<toml::Table>(&format!("v = {value:?}")))
+            .with_context(|| format!("--set {item}: not a value"))?
+            .remove("v")
+            .unwrap_or(toml::Value::Boolean(false));
+        if !table.contains_key(key) {
+            bail!("--set {item}: [track] has no key '{key}'");
+        }
+        table.insert(key.to_string(), value);
+    }
+    let settings: gdvae_node::config::TrackSettings =
+        table.try_into().context("--set: the track settings do not parse")?;
+    settings.validate().map_err(anyhow::Error::msg)?;
+    Ok(settings)
+}
+
+fn fmt_opt(value: Option<f64>, scale: f64, decimals: usize) -> String {
+    value
+        .map(|v| format!("{:.*}", decimals, v * scale))
+        .unwrap_or_else(|| "-".into())
+}
+
+fn print_evaluation(report: &gdvae_node::evaluate::Report, summary: &RunSummary) {
+    println!("convention: {}", report.convention);
+    println!(
+        "{:<22} {:>6} {:>5} | {:>23} | {:>23} | {:>10} | {:>14} {:>5} {:>6}",
+        "recording",
+        "frames",
+        "rej",
+        "yaw raw med/p90/>30%",
+        "yaw filt med/p90/>30%",
+        "pos med m",
+        "changes found",
+        "false",
+        "delay"
+    );
+    let angles = |a: &Option<gdvae_node::evaluate::metrics::AngleErrors>| match a {
+        Some(a) => format!(
+            "{:>6}/{:>6}/{:>5}%",
+            fmt_opt(a.median_deg, 1.0, 1),
+            fmt_opt(a.p90_deg, 1.0, 1),
+            fmt_opt(a.over_30_deg, 100.0, 0)
+        ),
+        None => "no ground truth".into(),
+    };
+    for r in &report.recordings {
+        let changes = r
+            .changes
+            .as_ref()
+            .map(|c| {
+                (
+                    format!("{}/{}", c.found, c.true_changes),
+                    c.false_changes.to_string(),
+                    fmt_opt(c.median_delay_frames, 1.0, 0),
+                )
+            })
+            .unwrap_or((format!("{} reported", r.changes_reported), "-".into(), "-".into()));
+        println!(
+            "{:<22} {:>6} {:>5} | {:>23} | {:>23} | {:>10} | {:>14} {:>5} {:>6}",
+            r.stream,
+            r.states,
+            r.rejected,
+            angles(&r.heading_raw),
+            angles(&r.heading_filtered),
+            fmt_opt(r.position.as_ref().and_then(|p| p.median_m), 1.0, 3),
+            changes.0,
+            changes.1,
+            changes.2
+        );
+        if !r.has_truth {
+            println!(
+                "{:<22} filtered yaw steps: median {} deg, p90 {} deg per frame",
+                "",
+                fmt_opt(r.filtered_yaw_steps.median_deg, 1.0, 2),
+                fmt_opt(r.filtered_yaw_steps.p90_deg, 1.0, 2)
+            );
+        }
+        if r.truth_without_state > 0 || r.states_without_truth > 0 {
+            println!(
+                "{:<22} unmatched: {} truth frames without a state, {} states without truth",
+                "", r.truth_without_state, r.states_without_truth
+            );
+        }
+    }
+    let o = &report.overall;
+    println!(
+        "overall ({} recordings, {} matched frames): heading raw {}, filtered {} (median/p90/>30%)",
+        o.recordings,
+        o.matched,
+        angles(&Some(o.heading_raw.clone())),
+        angles(&Some(o.heading_filtered.clone()))
+    );
+    for (family, a) in &o.heading_filtered_by_family {
+        let raw = o.heading_raw_by_family.get(family).cloned();
+        println!(
+            "  {family:<10} heading raw {} (>150: {}%), filtered {} (>150: {}%)",
+            angles(&raw),
+            fmt_opt(raw.as_ref().and_then(|r| r.over_150_deg), 100.0, 0),
+            angles(&Some(a.clone())),
+            fmt_opt(a.over_150_deg, 100.0, 0)
+        );
+    }
+    let c = &o.changes;
+    println!(
+        "  identity changes: {}/{} found within {} frames (recall {}), {} false = {} per 1000 frames, median delay {} frames",
+        c.found,
+        c.true_changes,
+        report.tolerance_frames,
+        fmt_opt(c.recall, 1.0, 3),
+        c.false_changes,
+        fmt_opt(c.false_per_1000_frames, 1.0, 2),
+        fmt_opt(c.median_delay_frames, 1.0, 0)
+    );
+    println!(
+        "  position (centre_m vs truth, horizontal): median {} m, p90 {} m",
+        fmt_opt(o.position.median_m, 1.0, 3),
+        fmt_opt(o.position.p90_m, 1.0, 3)
+    );
+    for r in &o.retrieval {
+        println!(
+            "  identity retrieval after {:>2} frames: top-1 {} (same family {}) over {} subjects",
+            r.frames,
+            fmt_opt(r.top1, 1.0, 3),
+            fmt_opt(r.top1_same_family, 1.0, 3),
+            r.queries
+        );
+    }
+    let states: u64 = summary.snapshot.streams.values().map(|c| c.published).sum();
+    println!(
+        "  replay: {states} states in {:.1} s ({:.1} frames/s)",
+        summary.busy.as_secs_f64(),
+        states as f64 / summary.busy.as_secs_f64().max(1e-9)
+    );
+}
+
 /// The config a one-off command starts from: the given file or the defaults, with `--bundle` applied.
 fn starting_config(path: Option<PathBuf>, bundle: Option<PathBuf>) -> Result<Config> {
     let mut config = match path {
@@ -348,36 +606,6 @@ fn starting_config(path: Option<PathBuf>, bundle: Option<PathBuf>) -> Result<Con
         config.model.bundle = bundle;
     }
     Ok(config)
-}
-
-/// One replay source per input: MCAP files and rosbag2 folders replay their point clouds, other
-/// files and folders are point-cloud files.
-fn replay_sources(inputs: &[PathBuf], speed: f64) -> Result<Vec<SourceSettings>> {
-    let mut sources: Vec<SourceSettings> = Vec::new();
-    for input in inputs {
-        let is_recording = input.extension().is_some_and(|e| e == "mcap")
-            || (input.is_dir() && gdvae_node::sources::mcap::recording_files(input).is_ok());
-        let stem = input
-            .file_stem()
-            .and_then(|s| s.to_str())
-            .unwrap_or("input")
-            .replace(|c: char| !(c.is_ascii_alphanumeric() || c == '-' || c == '_'), "_");
-        let mut stream = stem.clone();
-        let mut n = 1;
-        while sources.iter().any(|s| s.stream == stream) {
-            n += 1;
-            stream = format!("{stem}_{n}");
-        }
-        let mut source: SourceSettings = toml::from_str(&format!(
-            "stream = {stream:?}\nkind = {:?}\npath = {:?}",
-            if is_recording { "mcap" } else { "files" },
-            input.display().to_string()
-        ))
-        .context("building a replay source")?;
-        source.speed = speed;
-        sources.push(source);
-    }
-    Ok(sources)
 }
 
 fn run_pipeline(config: &Config, options: RunOptions, live_summary: bool) -> Result<RunSummary> {

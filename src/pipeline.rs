@@ -30,7 +30,7 @@ use crate::runtime::{Encoder, Encoding};
 use crate::sources::{self, unix_now_ns, Ingest, Outlet, Rejection};
 use crate::state::{self, Output, State};
 use crate::stats::{Snapshot, Stats};
-use crate::track::{confidence_from_log_variance, PoseFilter, ShapeFilter};
+use crate::track::{confidence_from_log_variance, StreamTracker};
 
 #[derive(Debug, thiserror::Error)]
 pub enum PipelineError {
@@ -45,10 +45,13 @@ pub enum PipelineError {
 }
 
 /// How a run behaves beyond its config.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Default)]
 pub struct RunOptions {
     /// Publish with blocking congestion control (replay benchmarks and tests: nothing lost).
     pub lossless_publish: bool,
+    /// Also hand every published message to this channel, in publish order (`evaluate` reads the
+    /// states here instead of from the network). Unbounded on purpose: whoever asks for it keeps up.
+    pub collect: Option<crossbeam_channel::Sender<Output>>,
 }
 
 #[derive(Debug, Clone)]
@@ -299,6 +302,9 @@ pub fn run(
                         );
                     }
                 }
+                if let Some(collect) = &options.collect {
+                    let _ = collect.send(output);
+                }
             }
             Err(crossbeam_channel::RecvTimeoutError::Timeout) => {}
             Err(crossbeam_channel::RecvTimeoutError::Disconnected) => break,
@@ -533,10 +539,9 @@ fn encode(rx: Receiver<Vec<Ticketed<PreparedFrame>>>, tx: Sender<Ticketed<Done>>
     }
 }
 
-/// Per-stream tracking state.
-struct StreamTracker {
-    shape: ShapeFilter,
-    pose: PoseFilter,
+/// Per-stream state of the track stage: the filters and the bookkeeping around them.
+struct Stream {
+    tracker: StreamTracker,
     last_stamp_ns: Option<u64>,
     rejections_logged: u64,
 }
@@ -544,7 +549,7 @@ struct StreamTracker {
 fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant, Instant)>, config: &Config, stats: &Stats) {
     let mut pending: BTreeMap<u64, Done> = BTreeMap::new();
     let mut next = 0u64;
-    let mut trackers: HashMap<String, StreamTracker> = HashMap::new();
+    let mut trackers: HashMap<String, Stream> = HashMap::new();
     let settings = &config.track;
     let node = config.node.name.clone();
     let nominal_dt = 1.0 / settings.nominal_rate_hz;
@@ -557,9 +562,8 @@ fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant, Instant)>, c
                 Done::Encoded(f) => (f.origin.stream.clone(), f.origin.ingested),
                 Done::Rejected(r) => (r.stream.clone(), r.ingested),
             };
-            let tracker = trackers.entry(stream.clone()).or_insert_with(|| StreamTracker {
-                shape: ShapeFilter::new(settings),
-                pose: PoseFilter::new(settings),
+            let tracker = trackers.entry(stream.clone()).or_insert_with(|| Stream {
+                tracker: StreamTracker::new(settings),
                 last_stamp_ns: None,
                 rejections_logged: 0,
             });
@@ -601,7 +605,7 @@ fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant, Instant)>, c
                     if frame.origin.sensor_stamp_ns.is_some() {
                         tracker.last_stamp_ns = frame.origin.sensor_stamp_ns;
                     }
-                    Output::State(Box::new(state_of(&node, &frame, tracker, dt)))
+                    Output::State(Box::new(state_of(&node, &frame, &mut tracker.tracker, dt)))
                 }
             };
             stats.record("track", ms_since(start));
@@ -624,7 +628,14 @@ fn variances(log_variance: &[f32]) -> Vec<f32> {
 
 fn state_of(node: &str, frame: &EncodedFrame, tracker: &mut StreamTracker, dt: f32) -> State {
     let e = &frame.encoding;
-    let update = tracker.shape.update(&e.z_i_mean, &e.z_i_logvar);
+    let tracked = tracker.update(
+        (&e.z_i_mean, &e.z_i_logvar),
+        e.q,
+        &e.z_e_mean,
+        frame.prepared.centre_m,
+        dt,
+    );
+    let update = tracked.shape;
     if let Some(change) = update.change {
         log::info!(
             "stream '{}' frame {}: identity changed ({} -> {})",
@@ -634,7 +645,7 @@ fn state_of(node: &str, frame: &EncodedFrame, tracker: &mut StreamTracker, dt: f
             change.identity
         );
     }
-    let pose = tracker.pose.update(e.q, &e.z_e_mean, dt);
+    let pose = tracked.pose;
     State {
         schema: state::STATE_SCHEMA.into(),
         node: node.to_string(),
@@ -668,6 +679,7 @@ fn state_of(node: &str, frame: &EncodedFrame, tracker: &mut StreamTracker, dt: f
         filtered: state::Filtered {
             q: pose.q,
             yaw: pose.yaw,
+            yaw_std: tracked.heading.map(|h| h.yaw_std as f32),
             z_e: pose.z_e,
             z_e_confidence: confidence_from_log_variance(&e.z_e_logvar),
         },
@@ -679,6 +691,7 @@ fn state_of(node: &str, frame: &EncodedFrame, tracker: &mut StreamTracker, dt: f
             inlier: update.inlier,
             distance: update.distance,
             confidence: tracker.shape.confidence(),
+            change_statistic: update.statistic,
         },
         event: update.change.map(|c| state::IdentityEvent {
             kind: "identity_change".into(),

@@ -59,6 +59,9 @@ pub struct Raw {
 pub struct Filtered {
     pub q: [f32; 4],
     pub yaw: f32,
+    /// Standard deviation of `yaw` (radians) from the heading tracker; absent under one-euro.
+    #[serde(default)]
+    pub yaw_std: Option<f32>,
     pub z_e: Vec<f32>,
     /// 1 / (1 + mean variance of z_E), in (0, 1].
     pub z_e_confidence: f32,
@@ -78,6 +81,11 @@ pub struct Shape {
     pub distance: f32,
     /// Fraction of recent frames (up to 20, since the last change) that were fused.
     pub confidence: f32,
+    /// The change detector's statistic after this frame (CUSUM of distances; a change is reported
+    /// when it reaches `track.cusum_threshold`). Under `change_detector = "consecutive"`: the
+    /// current run of outliers.
+    #[serde(default)]
+    pub change_statistic: f32,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

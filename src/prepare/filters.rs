@@ -161,3 +161,50 @@ pub fn remove_outliers(points: &mut Vec<[f32; 3]>, settings: &OutlierSettings) -
     points.retain(|_| flags.next().unwrap_or(true));
     before - points.len()
 }
+
+/// Keeps the largest Euclidean cluster: points joined by chains of neighbours closer than
+/// `radius` (PCL's EuclideanClusterExtraction, one cluster). What a crop leaves of the floor's
+/// depth noise and of stray clutter is sparse and falls apart from the object. Returns how many
+/// points were removed.
+pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
+    if points.len() < 2 {
+        return 0;
+    }
+    let Ok(tree) = ImmutableKdTree::<f32, 3>::new_from_slice(points) else {
+        return 0;
+    };
+    let radius_squared = radius * radius;
+    let mut label = vec![usize::MAX; points.len()];
+    let (mut best, mut best_size) = (0usize, 0usize);
+    let mut stack = Vec::new();
+    for seed in 0..points.len() {
+        if label[seed] != usize::MAX {
+            continue;
+        }
+        label[seed] = seed;
+        stack.push(seed);
+        let mut size = 0;
+        while let Some(i) = stack.pop() {
+            size += 1;
+            let found = tree
+                .query(&points[i])
+                .within::<SquaredEuclidean<f32>>(radius_squared)
+                .unsorted()
+                .execute();
+            for neighbour in found {
+                let j = neighbour.item as usize;
+                if label[j] == usize::MAX {
+                    label[j] = seed;
+                    stack.push(j);
+                }
+            }
+        }
+        if size > best_size {
+            (best, best_size) = (seed, size);
+        }
+    }
+    let before = points.len();
+    let mut labels = label.into_iter();
+    points.retain(|_| labels.next() == Some(best));
+    before - points.len()
+}

@@ -9,7 +9,7 @@
 mod filters;
 mod sampling;
 
-pub use filters::{crop, fit_ground, levelling, remove_outliers, remove_plane, transform, Plane};
+pub use filters::{crop, fit_ground, keep_largest_cluster, levelling, remove_outliers, remove_plane, transform, Plane};
 pub use sampling::{
     centre_and_scale, farthest_point_sampling, random_sampling, subsample, voxel_sampling, PrepareError, Sampling,
 };
@@ -115,6 +115,9 @@ impl Preparer {
             remove_plane(&mut points, &plane, s.ground_tolerance_m);
         }
         remove_outliers(&mut points, &s.outliers);
+        if s.cluster_m > 0.0 {
+            keep_largest_cluster(&mut points, s.cluster_m);
+        }
         let points_kept = points.len();
         let mut chosen = subsample(&points, self.points, s.min_points, s.sampling, s.voxel_m, seed)?;
         let centre_m = centre_and_scale(&mut chosen, self.model_units_per_metre);

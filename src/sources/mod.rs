@@ -190,3 +190,34 @@ impl Outlet {
         }
     }
 }
+
+/// One replay source per input, named after its file stem (made unique): MCAP files and rosbag2
+/// folders replay their point clouds, other files and folders are point-cloud files. `speed` as in
+/// `[[source]] speed` (0 = as fast as possible).
+pub fn replay_sources(inputs: &[std::path::PathBuf], speed: f64) -> Result<Vec<crate::config::SourceSettings>, String> {
+    let mut sources: Vec<crate::config::SourceSettings> = Vec::new();
+    for input in inputs {
+        let is_recording =
+            input.extension().is_some_and(|e| e == "mcap") || (input.is_dir() && mcap::recording_files(input).is_ok());
+        let stem = input
+            .file_stem()
+            .and_then(|s| s.to_str())
+            .unwrap_or("input")
+            .replace(|c: char| !(c.is_ascii_alphanumeric() || c == '-' || c == '_'), "_");
+        let mut stream = stem.clone();
+        let mut n = 1;
+        while sources.iter().any(|s| s.stream == stream) {
+            n += 1;
+            stream = format!("{stem}_{n}");
+        }
+        let mut source: crate::config::SourceSettings = toml::from_str(&format!(
+            "stream = {stream:?}\nkind = {:?}\npath = {:?}",
+            if is_recording { "mcap" } else { "files" },
+            input.display().to_string()
+        ))
+        .map_err(|e| format!("{}: building a replay source: {e}", input.display()))?;
+        source.speed = speed;
+        sources.push(source);
+    }
+    Ok(sources)
+}

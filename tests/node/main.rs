@@ -1,6 +1,7 @@
 //! The node's integration tests: one binary, a module per area, shared helpers.
 
 mod config;
+mod evaluate;
 mod files;
 mod helpers;
 mod inputs;

@@ -50,7 +50,10 @@ fn start(
             Some(session),
             s,
             st,
-            RunOptions { lossless_publish: true },
+            RunOptions {
+                lossless_publish: true,
+                ..RunOptions::default()
+            },
         )
         .unwrap()
     });

@@ -1,10 +1,13 @@
-//! The temporal filters on synthetic code sequences: shape fusion converges and grows certain, an
-//! identity switch is found within a bounded number of frames (and a lone outlier is not one),
-//! pose smoothing lags a moving pose by a bounded amount, quaternions keep their sign, yaw unwraps.
+//! The temporal filters on synthetic sequences with known answers: shape fusion converges and grows
+//! certain; an identity switch is found within a bounded number of frames, a small same-family
+//! shift by CUSUM, while a lone outlier and slow drift of the same size are not changes; pose
+//! smoothing lags a moving pose by a bounded amount, quaternions keep their sign, yaw unwraps; the
+//! heading tracker follows a turn with bounded lag, keeps its sense through a burst of flipped
+//! measurements, and faces a walking subject the way it walks.
 
-use gdvae_node::config::{Smoothing, TrackSettings};
-use gdvae_node::track::{unwrap, yaw_of, PoseFilter, ShapeFilter};
-use rand::SeedableRng;
+use gdvae_node::config::{ChangeDetector, Smoothing, TrackSettings};
+use gdvae_node::track::{unwrap, yaw_of, HeadingFilter, PoseFilter, ShapeFilter};
+use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
@@ -29,6 +32,7 @@ fn frames(truth: &[f32], sigma: f32, count: usize, rng: &mut ChaCha8Rng) -> Vec<
 fn calibrated() -> TrackSettings {
     TrackSettings {
         shape_gate: 2.5,
+        cusum_drift: 2.5,
         ..TrackSettings::default()
     }
 }
@@ -219,4 +223,306 @@ fn quaternion_sign_is_continuous_and_yaw_unwraps_over_turns() {
     assert!((last_yaw.unwrap() - 6.0 * std::f32::consts::PI).abs() < 1e-3);
     assert!((yaw_of(&[0.0, 0.0, 0.0, 1.0]).abs() - std::f32::consts::PI).abs() < 1e-6);
     assert!((unwrap(Some(3.1), -3.1) - (2.0 * std::f32::consts::PI - 3.1)).abs() < 1e-5);
+}
+
+// ---- Identity changes by CUSUM: a small persistent shift is a change, drift and glitches are not.
+
+/// Frames of one object whose encoder reports variances `reported` times its true noise variance
+/// (a bundle whose variances are too wide, as the shipped one's are).
+fn frames_reported(
+    truth: &[f32],
+    sigma: f32,
+    reported: f32,
+    count: usize,
+    rng: &mut ChaCha8Rng,
+) -> Vec<(Vec<f32>, Vec<f32>)> {
+    frames(truth, sigma, count, rng)
+        .into_iter()
+        .map(|(mean, lv)| (mean, lv.iter().map(|l| l + reported.ln()).collect()))
+        .collect()
+}
+
+#[test]
+fn cusum_finds_a_small_same_family_shift_that_consecutive_outliers_miss() {
+    // A same-family switch: every dimension moves by 0.6 sigma. Single frames of the new object sit
+    // mostly inside the gate (distance ~ 1.36 against an inlier's 1), so "5 outliers in a row" at
+    // gate 2 sees nothing, while CUSUM (k 1.15, h 4) accumulates it within a few frames.
+    let (sigma, shift) = (0.1f32, 0.06f32);
+    let base = TrackSettings {
+        shape_gate: 2.0,
+        switch_frames: 3,
+        cusum_drift: 1.15,
+        cusum_threshold: 4.0,
+        ..TrackSettings::default()
+    };
+    let consecutive = TrackSettings {
+        change_detector: ChangeDetector::Consecutive,
+        ..base.clone()
+    };
+    let mut found_cusum = 0;
+    let mut found_consecutive = 0;
+    let mut delays = Vec::new();
+    for seed in 0..20 {
+        let mut rng = ChaCha8Rng::seed_from_u64(100 + seed);
+        let first = frames(&object(0.0), sigma, 90, &mut rng);
+        let second = frames(&object(shift), sigma, 30, &mut rng);
+        let mut cusum = ShapeFilter::new(&base);
+        let mut runs = ShapeFilter::new(&consecutive);
+        for (mean, lv) in &first {
+            assert!(
+                cusum.update(mean, lv).change.is_none(),
+                "seed {seed}: false change on the first object"
+            );
+            runs.update(mean, lv);
+        }
+        if let Some(at) = second
+            .iter()
+            .position(|(mean, lv)| cusum.update(mean, lv).change.is_some())
+        {
+            found_cusum += 1;
+            delays.push(at);
+        }
+        found_consecutive += usize::from(second.iter().any(|(mean, lv)| runs.update(mean, lv).change.is_some()));
+    }
+    delays.sort_unstable();
+    assert!(found_cusum >= 19, "CUSUM found {found_cusum}/20 (delays {delays:?})");
+    assert!(
+        delays[delays.len() / 2] < 15,
+        "median delay {} frames (delays {delays:?})",
+        delays[delays.len() / 2]
+    );
+    assert!(
+        found_consecutive <= 5,
+        "consecutive outliers found {found_consecutive}/20: the case is not hard"
+    );
+}
+
+#[test]
+fn slow_drift_of_the_same_size_is_not_a_change() {
+    // The same 0.6 sigma per dimension, reached over 6 s (pose-driven drift of z_I): the estimate
+    // follows it (min_shape_variance makes it forget), so no change is reported.
+    let settings = TrackSettings {
+        shape_gate: 2.0,
+        switch_frames: 3,
+        cusum_drift: 1.15,
+        cusum_threshold: 4.0,
+        min_shape_variance: 1e-3,
+        ..TrackSettings::default()
+    };
+    for seed in 0..20 {
+        let mut rng = ChaCha8Rng::seed_from_u64(200 + seed);
+        let mut filter = ShapeFilter::new(&settings);
+        for (mean, lv) in frames(&object(0.0), 0.1, 60, &mut rng) {
+            filter.update(&mean, &lv);
+        }
+        for step in 0..180 {
+            let offset = 0.06 * step as f32 / 180.0;
+            let (mean, lv) = frames(&object(offset), 0.1, 1, &mut rng).remove(0);
+            let update = filter.update(&mean, &lv);
+            assert!(
+                update.change.is_none(),
+                "seed {seed}: drift reported as a change at step {step}"
+            );
+        }
+        for (mean, lv) in frames(&object(0.06), 0.1, 60, &mut rng) {
+            assert!(
+                filter.update(&mean, &lv).change.is_none(),
+                "seed {seed}: change after the drift"
+            );
+        }
+        assert_eq!(filter.identity(), 0);
+    }
+}
+
+#[test]
+fn variance_scale_calibrates_a_bundle_whose_variances_are_too_wide() {
+    // Reported variances 9x the true noise: distances average ~1/9 and a 0.6-sigma shift hides in
+    // them; shape_variance_scale = 1/9 restores the calibrated distances and the change is found.
+    let settings = TrackSettings {
+        shape_gate: 2.0,
+        switch_frames: 3,
+        cusum_drift: 1.15,
+        cusum_threshold: 4.0,
+        ..TrackSettings::default()
+    };
+    let scaled = TrackSettings {
+        shape_variance_scale: 1.0 / 9.0,
+        ..settings.clone()
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let first = frames_reported(&object(0.0), 0.1, 9.0, 90, &mut rng);
+    let second = frames_reported(&object(0.06), 0.1, 9.0, 60, &mut rng);
+    let mut raw = ShapeFilter::new(&settings);
+    let mut calibrated = ShapeFilter::new(&scaled);
+    let mut distances = Vec::new();
+    for (mean, lv) in &first {
+        raw.update(mean, lv);
+        distances.push(calibrated.update(mean, lv).distance);
+    }
+    let mean_distance = distances[10..].iter().sum::<f32>() / (distances.len() - 10) as f32;
+    assert!(
+        (0.7..1.4).contains(&mean_distance),
+        "calibrated distances average {mean_distance}"
+    );
+    assert!(
+        second.iter().all(|(m, lv)| raw.update(m, lv).change.is_none()),
+        "uncalibrated: hidden"
+    );
+    assert!(
+        second.iter().any(|(m, lv)| calibrated.update(m, lv).change.is_some()),
+        "calibrated: found"
+    );
+}
+
+#[test]
+fn one_wild_frame_adds_a_bounded_amount_of_evidence() {
+    let settings = TrackSettings {
+        switch_frames: 4,
+        cusum_drift: 2.5,
+        cusum_threshold: 8.0,
+        ..calibrated()
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut filter = ShapeFilter::new(&settings);
+    for (mean, lv) in frames(&object(0.0), 0.05, 30, &mut rng) {
+        filter.update(&mean, &lv);
+    }
+    let wild: Vec<f32> = object(0.0).iter().map(|t| t + 100.0).collect();
+    let update = filter.update(&wild, &vec![2.0 * 0.05f32.ln(); DIMENSIONS]);
+    assert!(update.change.is_none());
+    assert!(
+        (update.statistic - settings.cusum_threshold / settings.switch_frames as f32).abs() < 1e-4,
+        "one frame adds at most h / switch_frames, got {}",
+        update.statistic
+    );
+    let before = filter.mean().to_vec();
+    for (mean, lv) in frames(&object(0.0), 0.05, 30, &mut rng) {
+        assert!(filter.update(&mean, &lv).change.is_none());
+    }
+    assert_eq!(filter.identity(), 0);
+    let moved = filter
+        .mean()
+        .iter()
+        .zip(&before)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f32::max);
+    assert!(moved < 0.05, "the wild frame was not fused (moved {moved})");
+}
+
+// ---- Heading tracker.
+
+const DT: f64 = 1.0 / 30.0;
+
+fn wrap_deg(angle: f64) -> f64 {
+    (angle.to_degrees() + 180.0).rem_euclid(360.0) - 180.0
+}
+
+#[test]
+fn a_constant_rate_turn_in_place_is_followed_with_bounded_lag() {
+    // Idle turning at 0.35 rad/s (the sim's rate), encoder yaw with 15-degree noise, no motion.
+    let settings = TrackSettings::default();
+    let mut filter = HeadingFilter::new(&settings);
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let noise = Normal::new(0.0, 15f64.to_radians()).unwrap();
+    let mut errors = Vec::new();
+    let mut raw_errors = Vec::new();
+    for step in 0..300 {
+        let truth = 0.5 + 0.35 * step as f64 * DT;
+        let measured = truth + noise.sample(&mut rng);
+        let heading = filter.update(measured, [0.2, -0.1], DT);
+        if step >= 60 {
+            errors.push(wrap_deg(heading.yaw - truth));
+            raw_errors.push(wrap_deg(measured - truth).abs());
+        }
+    }
+    let bias = errors.iter().sum::<f64>() / errors.len() as f64;
+    let mut abs: Vec<f64> = errors.iter().map(|e| e.abs()).collect();
+    abs.sort_by(f64::total_cmp);
+    raw_errors.sort_by(f64::total_cmp);
+    let (median, raw_median) = (abs[abs.len() / 2], raw_errors[raw_errors.len() / 2]);
+    assert!(
+        bias.abs() < 3.0,
+        "lag: mean error {bias:.2} deg while turning at 20 deg/s"
+    );
+    assert!(
+        median < 0.5 * raw_median,
+        "filtered median {median:.1} vs raw {raw_median:.1} deg"
+    );
+}
+
+#[test]
+fn a_burst_of_back_to_front_measurements_does_not_turn_the_track_round() {
+    let settings = TrackSettings::default();
+    let mut filter = HeadingFilter::new(&settings);
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let noise = Normal::new(0.0, 10f64.to_radians()).unwrap();
+    let truth = 1.0;
+    for step in 0..200 {
+        // Frames 90..110: the encoder takes the back for the front (20 frames, 0.67 s).
+        let flipped = (90..110).contains(&step);
+        let measured = truth + noise.sample(&mut rng) + if flipped { std::f64::consts::PI } else { 0.0 };
+        let heading = filter.update(measured, [0.0, 0.0], DT);
+        if step >= 30 {
+            assert!(
+                wrap_deg(heading.yaw - truth).abs() < 15.0,
+                "step {step}: track at {:.1} deg, truth {:.1}",
+                heading.yaw.to_degrees(),
+                truth.to_degrees()
+            );
+            assert!(!heading.turned_round, "step {step}: turned round");
+        }
+    }
+}
+
+#[test]
+fn a_walking_subject_is_faced_the_way_it_walks_even_when_the_encoder_says_backwards() {
+    // Walking along +x then curving, the encoder consistently 180 degrees off (a body the encoder
+    // reads back to front): the motion votes turn the track round within about a second.
+    let settings = TrackSettings::default();
+    let mut filter = HeadingFilter::new(&settings);
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let noise = Normal::new(0.0, 10f64.to_radians()).unwrap();
+    let position_noise = Normal::new(0.0, 0.01).unwrap();
+    let (mut x, mut y) = (0.0f64, 0.0f64);
+    let mut late_errors = Vec::new();
+    for step in 0..240 {
+        let truth = 0.2 * (step as f64 * DT).sin();
+        x += 0.4 * truth.cos() * DT;
+        y += 0.4 * truth.sin() * DT;
+        let measured = truth + std::f64::consts::PI + noise.sample(&mut rng);
+        let centre = [x + position_noise.sample(&mut rng), y + position_noise.sample(&mut rng)];
+        let heading = filter.update(measured, centre, DT);
+        if step >= 60 {
+            late_errors.push(wrap_deg(heading.yaw - truth).abs());
+        }
+    }
+    let worst = late_errors.iter().cloned().fold(0.0, f64::max);
+    assert!(
+        worst < 20.0,
+        "after 2 s the track faces the walking direction (worst {worst:.1} deg)"
+    );
+}
+
+#[test]
+fn without_motion_the_sense_follows_the_encoder_majority() {
+    let settings = TrackSettings {
+        heading_from_motion: false,
+        ..TrackSettings::default()
+    };
+    let mut filter = HeadingFilter::new(&settings);
+    let mut rng = ChaCha8Rng::seed_from_u64(14);
+    let noise = Normal::new(0.0, 10f64.to_radians()).unwrap();
+    // The first frame says backwards, then the encoder is right 80 % of the time.
+    let truth = -2.0;
+    let mut last = 0.0;
+    for step in 0..150 {
+        let wrong = step == 0 || rng.random_bool(0.2);
+        let measured = truth + noise.sample(&mut rng) + if wrong { std::f64::consts::PI } else { 0.0 };
+        last = filter.update(measured, [0.0, 0.0], DT).yaw;
+    }
+    assert!(
+        wrap_deg(last - truth).abs() < 15.0,
+        "ends at {:.1} deg",
+        last.to_degrees()
+    );
 }

@@ -1,0 +1,66 @@
+#!/usr/bin/env bash
+# The tracking benchmark: sim recordings with ground truth, generated from fixed seeds, replayed
+# through the node by `gdvae-node evaluate`. Two sets of the same 12 scenarios with different
+# seeds: `tune` (settings are chosen on it) and `holdout` (reported, never tuned on).
+#
+#   bench/tracking.sh SET [OUT_DIR] [-- evaluate options...]
+#
+# SET is tune or holdout. Recordings go to OUT_DIR/SET/ (default /work/data/bench-tracking, or
+# $BENCH_DIR) and are made once (the sim is deterministic per seed); the report goes to
+# OUT_DIR/SET.json and the plots to OUT_DIR/SET-plots/.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+SET=${1:?usage: bench/tracking.sh tune|holdout [OUT_DIR] [-- evaluate options]}
+shift
+OUT=${BENCH_DIR:-/work/data/bench-tracking}
+if [[ $# -gt 0 && $1 != "--" ]]; then OUT=$1; shift; fi
+[[ ${1:-} == "--" ]] && shift
+case $SET in
+  tune) BASE=100 ;;
+  holdout) BASE=200 ;;
+  *) echo "bench/tracking.sh: unknown set '$SET' (tune or holdout)" >&2; exit 2 ;;
+esac
+
+SIM=./target/release/sim
+NODE=./target/release/gdvae-node
+for binary in $SIM $NODE; do
+  [[ -x $binary ]] || { echo "bench/tracking.sh: $binary missing: run 'make node sim' first" >&2; exit 2; }
+done
+
+# name | motion | families (cycled at each switch) | duration s | switch times s | camera distance m
+SCENARIOS=(
+  "walk-qq|walk|quadruped|8|4|2.6"
+  "walk-bb|walk|biped|8|4|3.2"
+  "walk-qqq|walk|quadruped|9|3,6|3.6"
+  "walk-bbb|walk|biped|9|3,6|2.8"
+  "idle-qq|idle|quadruped|8|4|2.6"
+  "idle-bb|idle|biped|8|4|3.2"
+  "walk-qb|walk|quadruped,biped|8|4|3.0"
+  "walk-bq|walk|biped,quadruped|8|4|3.4"
+  "idle-q|idle|quadruped|8||3.0"
+  "idle-b|idle|biped|8||2.6"
+  "walk-q|walk|quadruped|8||3.5"
+  "walk-b|walk|biped|8||2.4"
+)
+
+mkdir -p "$OUT/$SET"
+RECORDINGS=()
+index=0
+for scenario in "${SCENARIOS[@]}"; do
+  IFS='|' read -r name motion families duration switches distance <<<"$scenario"
+  seed=$((BASE + index))
+  index=$((index + 1))
+  file="$OUT/$SET/$name-s$seed.mcap"
+  RECORDINGS+=("$file")
+  [[ -s $file ]] && continue
+  args=(record --out "$file.partial" --motion "$motion" --families "$families" --duration "$duration"
+        --camera-distance "$distance" --decimation 2 --ground-extent 1.5 --seed "$seed")
+  [[ -n $switches ]] && args+=(--switch-at "$switches")
+  echo "bench/tracking.sh: $SIM ${args[*]}" >&2
+  $SIM "${args[@]}" >&2
+  mv "$file.partial" "$file"
+done
+
+$NODE evaluate "${RECORDINGS[@]}" --config config/replay.toml \
+  --out "$OUT/$SET.json" --plots "$OUT/$SET-plots" "$@"

@@ -1,0 +1,223 @@
+//! The measures `evaluate` reports, as pure functions of matched (state, truth) sequences, so that
+//! each can be checked on cases computed by hand.
+
+use std::f64::consts::{PI, TAU};
+
+use serde::Serialize;
+
+/// `angle` wrapped to (-pi, pi].
+pub fn wrap(angle: f64) -> f64 {
+    let wrapped = angle.rem_euclid(TAU);
+    if wrapped > PI {
+        wrapped - TAU
+    } else {
+        wrapped
+    }
+}
+
+/// The `q`-quantile (0..=1) of sorted values, linearly interpolated; `None` when empty.
+pub fn quantile(sorted: &[f64], q: f64) -> Option<f64> {
+    if sorted.is_empty() {
+        return None;
+    }
+    let position = q.clamp(0.0, 1.0) * (sorted.len() - 1) as f64;
+    let (low, high) = (position.floor() as usize, position.ceil() as usize);
+    Some(sorted[low] + (sorted[high] - sorted[low]) * (position - low as f64))
+}
+
+fn sorted(values: impl IntoIterator<Item = f64>) -> Vec<f64> {
+    let mut v: Vec<f64> = values.into_iter().filter(|x| x.is_finite()).collect();
+    v.sort_by(f64::total_cmp);
+    v
+}
+
+/// Absolute angular errors, summarised.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct AngleErrors {
+    pub count: usize,
+    pub median_deg: Option<f64>,
+    pub p90_deg: Option<f64>,
+    /// Share of frames whose error exceeds 30 degrees.
+    pub over_30_deg: Option<f64>,
+    /// Share of frames whose error exceeds 150 degrees (the front/back confusions).
+    pub over_150_deg: Option<f64>,
+}
+
+/// Summary of `|wrap(estimate - truth)|` over the frames (radians in, degrees out).
+pub fn angle_errors(errors_rad: &[f64]) -> AngleErrors {
+    let abs = sorted(errors_rad.iter().map(|e| wrap(*e).abs().to_degrees()));
+    let share =
+        |limit: f64| (!abs.is_empty()).then(|| abs.iter().filter(|e| **e > limit).count() as f64 / abs.len() as f64);
+    AngleErrors {
+        count: abs.len(),
+        median_deg: quantile(&abs, 0.5),
+        p90_deg: quantile(&abs, 0.9),
+        over_30_deg: share(30.0),
+        over_150_deg: share(150.0),
+    }
+}
+
+/// Distances summarised (metres).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Distances {
+    pub count: usize,
+    pub median_m: Option<f64>,
+    pub p90_m: Option<f64>,
+}
+
+pub fn distances(values: &[f64]) -> Distances {
+    let v = sorted(values.iter().copied());
+    Distances {
+        count: v.len(),
+        median_m: quantile(&v, 0.5),
+        p90_m: quantile(&v, 0.9),
+    }
+}
+
+/// Identity changes found against the true ones.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Changes {
+    /// Frames the counts are over.
+    pub frames: usize,
+    pub true_changes: usize,
+    pub reported: usize,
+    /// True changes with a report within the tolerance after them.
+    pub found: usize,
+    /// Reports that found no true change.
+    pub false_changes: usize,
+    /// Frames from each found change to its report.
+    pub delays_frames: Vec<usize>,
+    pub recall: Option<f64>,
+    pub false_per_1000_frames: Option<f64>,
+    pub median_delay_frames: Option<f64>,
+}
+
+impl Changes {
+    /// Adds another recording's counts (the ratios are recomputed).
+    pub fn add(&mut self, other: &Changes) {
+        self.frames += other.frames;
+        self.true_changes += other.true_changes;
+        self.reported += other.reported;
+        self.found += other.found;
+        self.false_changes += other.false_changes;
+        self.delays_frames.extend(&other.delays_frames);
+        self.finish();
+    }
+
+    fn finish(&mut self) {
+        self.recall = (self.true_changes > 0).then(|| self.found as f64 / self.true_changes as f64);
+        self.false_per_1000_frames = (self.frames > 0).then(|| 1000.0 * self.false_changes as f64 / self.frames as f64);
+        self.median_delay_frames = quantile(&sorted(self.delays_frames.iter().map(|d| *d as f64)), 0.5);
+    }
+}
+
+/// Matches reported changes to true ones. Both are frame indices in one recording, `frames` long.
+/// A true change at frame `t` is found by the first unused report in `t ..= t + tolerance` (and
+/// before the next true change); every report left unused is a false change.
+pub fn match_changes(true_at: &[usize], reported_at: &[usize], tolerance: usize, frames: usize) -> Changes {
+    let mut truths = true_at.to_vec();
+    truths.sort_unstable();
+    let mut reports = reported_at.to_vec();
+    reports.sort_unstable();
+    let mut used = vec![false; reports.len()];
+    let mut delays = Vec::new();
+    for (k, &t) in truths.iter().enumerate() {
+        let next = truths.get(k + 1).copied().unwrap_or(usize::MAX);
+        let end = t.saturating_add(tolerance).min(next.saturating_sub(1));
+        if let Some(j) = (0..reports.len()).find(|&j| !used[j] && reports[j] >= t && reports[j] <= end) {
+            used[j] = true;
+            delays.push(reports[j] - t);
+        }
+    }
+    let mut changes = Changes {
+        frames,
+        true_changes: truths.len(),
+        reported: reports.len(),
+        found: delays.len(),
+        false_changes: used.iter().filter(|u| !**u).count(),
+        delays_frames: delays,
+        ..Changes::default()
+    };
+    changes.finish();
+    changes
+}
+
+/// One subject's appearance in one recording: its frames' raw z_I Gaussians, in order.
+#[derive(Debug, Clone)]
+pub struct Segment {
+    pub recording: String,
+    pub subject: String,
+    pub family: String,
+    /// (mean, variance) per frame.
+    pub frames: Vec<(Vec<f32>, Vec<f32>)>,
+}
+
+/// The precision-weighted product of Gaussians (the node's fusion without gate or floor).
+pub fn fuse(frames: &[(Vec<f32>, Vec<f32>)]) -> Option<Vec<f64>> {
+    let width = frames.first()?.0.len();
+    let mut weighted = vec![0.0f64; width];
+    let mut precision = vec![0.0f64; width];
+    for (mean, variance) in frames {
+        for k in 0..width.min(mean.len()).min(variance.len()) {
+            let p = 1.0 / (variance[k] as f64).max(1e-12);
+            weighted[k] += p * mean[k] as f64;
+            precision[k] += p;
+        }
+    }
+    Some(weighted.iter().zip(&precision).map(|(w, p)| w / p).collect())
+}
+
+/// Identity retrieval after `n` frames.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Retrieval {
+    pub frames: usize,
+    /// Segments long enough to take part (at least 2 n frames).
+    pub queries: usize,
+    /// Share of queries whose nearest reference (all subjects of the set) is their own.
+    pub top1: Option<f64>,
+    /// The same among the subjects of the query's family only.
+    pub top1_same_family: Option<f64>,
+}
+
+/// For every segment of at least `2 n` frames: the reference is the fusion of its first half, the
+/// query the fusion of the `n` frames that follow the half. A query is right when its nearest
+/// reference (Euclidean distance of the fused means) is its own segment's. References of all long
+/// enough segments compete.
+pub fn retrieval(segments: &[Segment], n: usize) -> Retrieval {
+    let usable: Vec<(&Segment, Vec<f64>, Vec<f64>)> = segments
+        .iter()
+        .filter(|s| n > 0 && s.frames.len() >= 2 * n)
+        .filter_map(|s| {
+            let half = s.frames.len() / 2;
+            Some((s, fuse(&s.frames[..half])?, fuse(&s.frames[half..half + n])?))
+        })
+        .collect();
+    let distance = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>();
+    let (mut right, mut right_family) = (0usize, 0usize);
+    for (k, (segment, _, query)) in usable.iter().enumerate() {
+        let nearest = |same_family: bool| {
+            usable
+                .iter()
+                .enumerate()
+                .filter(|(_, (s, _, _))| !same_family || s.family == segment.family)
+                .min_by(|(_, (_, a, _)), (_, (_, b, _))| distance(a, query).total_cmp(&distance(b, query)))
+                .map(|(j, _)| j)
+        };
+        right += usize::from(nearest(false) == Some(k));
+        right_family += usize::from(nearest(true) == Some(k));
+    }
+    let share = |count: usize| (!usable.is_empty()).then(|| count as f64 / usable.len() as f64);
+    Retrieval {
+        frames: n,
+        queries: usable.len(),
+        top1: share(right),
+        top1_same_family: share(right_family),
+    }
+}
+
+/// Frame-to-frame steps of an unwrapped angle series (radians in, degrees out): its smoothness,
+/// for recordings without ground truth.
+pub fn angle_steps(angles_rad: &[f64]) -> AngleErrors {
+    let steps: Vec<f64> = angles_rad.windows(2).map(|w| w[1] - w[0]).collect();
+    angle_errors(&steps)
+}

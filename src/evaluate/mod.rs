@@ -1,0 +1,358 @@
+//! Evaluate: the node's tracking measured against the simulator's ground truth.
+//!
+//! `gdvae-node evaluate REC...` replays sim recordings through the real pipeline (same stages, same
+//! settings, every frame), matches each published state to the recording's `/sim/ground_truth`
+//! message by sensor stamp, and reports per recording and overall: heading error of the raw and
+//! filtered yaw, position error of `centre_m`, identity changes found against the true ones, and
+//! identity retrieval from the fused z_I. A recording without ground truth gets what can be said
+//! without it (identity changes reported, heading smoothness).
+//!
+//! Convention (no offset is fitted): the estimated heading is the yaw about +z of R(q), the
+//! rotation that carries the bundle's canonical shape (forward +x, up +z, the sim's rest frame) onto
+//! the observed one, in the node's gravity frame. The gravity frame is the recording's world frame:
+//! each source's sensor pose is the recording's `world_from_camera` (unless `--keep-sensor-pose`).
+
+pub mod metrics;
+pub mod plot;
+pub mod truth;
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+
+use crate::config::SourceSettings;
+use crate::state::{Output, State};
+use metrics::{AngleErrors, Changes, Distances, Retrieval, Segment};
+use truth::TruthFrame;
+
+pub const CONVENTION: &str =
+    "heading error = wrap(yaw of R(q) - true yaw) about +z of the gravity frame; R(q) carries \
+the canonical shape (forward +x, up +z, the sim's rest frame) onto the observed one; the gravity frame is the \
+recording's world frame (sensor pose = its world_from_camera); no offset fitted";
+
+#[derive(Debug, Clone)]
+pub struct EvaluateOptions {
+    /// A true identity change is found when the node reports one within this many frames after it.
+    pub tolerance_frames: usize,
+    /// Identity retrieval after these numbers of frames.
+    pub retrieval_frames: Vec<usize>,
+    /// Take each source's sensor pose from the recording's ground truth (`world_from_camera`).
+    pub pose_from_truth: bool,
+}
+
+impl Default for EvaluateOptions {
+    fn default() -> Self {
+        Self {
+            tolerance_frames: 10,
+            retrieval_frames: vec![1, 5, 30],
+            pose_from_truth: true,
+        }
+    }
+}
+
+/// One input and what is known of it before the replay.
+#[derive(Debug, Clone)]
+pub struct Recording {
+    /// Its stream in the pipeline.
+    pub stream: String,
+    pub path: PathBuf,
+    pub truth: Vec<TruthFrame>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum EvaluateError {
+    #[error(transparent)]
+    Truth(#[from] truth::TruthError),
+    #[error("{0}")]
+    Sources(String),
+}
+
+/// Reads each recording's ground truth and names its stream.
+pub fn recordings(inputs: &[PathBuf]) -> Result<Vec<Recording>, EvaluateError> {
+    let sources = crate::sources::replay_sources(inputs, 0.0).map_err(EvaluateError::Sources)?;
+    sources
+        .into_iter()
+        .zip(inputs)
+        .map(|(source, path)| {
+            Ok(Recording {
+                stream: source.stream,
+                path: path.clone(),
+                truth: truth::read_truth(path)?,
+            })
+        })
+        .collect()
+}
+
+/// The replay sources of `recordings` (as fast as possible, every frame), each with the sensor
+/// pose its ground truth gives when `pose_from_truth` is set.
+pub fn sources(recordings: &[Recording], options: &EvaluateOptions) -> Result<Vec<SourceSettings>, EvaluateError> {
+    let paths: Vec<PathBuf> = recordings.iter().map(|r| r.path.clone()).collect();
+    let mut sources = crate::sources::replay_sources(&paths, 0.0).map_err(EvaluateError::Sources)?;
+    for (source, recording) in sources.iter_mut().zip(recordings) {
+        source.stream = recording.stream.clone();
+        let pose = recording.truth.first().and_then(|t| t.world_from_camera);
+        if let (true, Some(pose)) = (options.pose_from_truth, pose) {
+            source.sensor_to_gravity_rotation = Some(pose.rotation_rows());
+            source.sensor_to_gravity_translation = Some(pose.translation.map(|v| v as f32));
+        }
+    }
+    Ok(sources)
+}
+
+/// One matched frame, what the plots draw.
+#[derive(Debug, Clone, Serialize)]
+pub struct Row {
+    pub frame: usize,
+    pub true_yaw: f64,
+    pub raw_yaw: f64,
+    pub filtered_yaw: f64,
+    pub filtered_yaw_std: Option<f64>,
+    /// Index of the true subject in order of appearance.
+    pub subject: usize,
+    pub identity: u64,
+    pub distance: f64,
+    pub change_statistic: f64,
+    pub change_reported: bool,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct RecordingReport {
+    pub stream: String,
+    pub path: String,
+    pub has_truth: bool,
+    pub truth_frames: usize,
+    pub states: usize,
+    pub rejected: usize,
+    /// States matched to a ground-truth message by sensor stamp.
+    pub matched: usize,
+    pub states_without_truth: usize,
+    /// Ground-truth frames with no state (rejected or never published).
+    pub truth_without_state: usize,
+    pub subjects: Vec<String>,
+    pub families: Vec<String>,
+    pub heading_raw: Option<AngleErrors>,
+    pub heading_filtered: Option<AngleErrors>,
+    /// Horizontal distance of `centre_m` to the subject's true position.
+    pub position: Option<Distances>,
+    pub changes: Option<Changes>,
+    pub changes_reported: usize,
+    /// Frame-to-frame steps of the filtered yaw: its smoothness, with or without truth.
+    pub filtered_yaw_steps: AngleErrors,
+    #[serde(skip)]
+    pub rows: Vec<Row>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Overall {
+    pub recordings: usize,
+    pub with_truth: usize,
+    pub matched: usize,
+    pub heading_raw: AngleErrors,
+    pub heading_filtered: AngleErrors,
+    pub heading_raw_by_family: BTreeMap<String, AngleErrors>,
+    pub heading_filtered_by_family: BTreeMap<String, AngleErrors>,
+    pub position: Distances,
+    pub changes: Changes,
+    pub retrieval: Vec<Retrieval>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub schema: &'static str,
+    pub convention: &'static str,
+    pub tolerance_frames: usize,
+    pub overall: Overall,
+    pub recordings: Vec<RecordingReport>,
+}
+
+/// Matches the published outputs to the recordings' ground truth and measures.
+pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOptions) -> Report {
+    let mut states: HashMap<&str, Vec<&State>> = HashMap::new();
+    let mut rejected: HashMap<&str, usize> = HashMap::new();
+    for output in outputs {
+        match output {
+            Output::State(s) => states.entry(s.stream.as_str()).or_default().push(s),
+            Output::Rejected(r) => *rejected.entry(r.stream.as_str()).or_default() += 1,
+        }
+    }
+    let mut reports = Vec::new();
+    let mut segments = Vec::new();
+    let (mut raw_all, mut filtered_all, mut position_all) = (Vec::new(), Vec::new(), Vec::new());
+    let mut raw_family: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    let mut filtered_family: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    let mut changes_all = Changes::default();
+    for recording in recordings {
+        let own = states.get(recording.stream.as_str()).cloned().unwrap_or_default();
+        let report = recording_report(
+            recording,
+            &own,
+            rejected.get(recording.stream.as_str()).copied(),
+            options,
+        );
+        // Pooled figures and the identity segments, over matched frames.
+        let by_stamp: HashMap<u64, &TruthFrame> = recording.truth.iter().map(|t| (t.stamp_nanos, t)).collect();
+        let mut current: Option<Segment> = None;
+        for state in &own {
+            let Some(truth) = state.stamps.sensor_ns.and_then(|s| by_stamp.get(&s)) else {
+                continue;
+            };
+            raw_all.push(state.raw.yaw as f64 - truth.yaw);
+            filtered_all.push(state.filtered.yaw as f64 - truth.yaw);
+            raw_family
+                .entry(truth.family.clone())
+                .or_default()
+                .push(state.raw.yaw as f64 - truth.yaw);
+            filtered_family
+                .entry(truth.family.clone())
+                .or_default()
+                .push(state.filtered.yaw as f64 - truth.yaw);
+            position_all.push(horizontal_distance(state, truth));
+            if current.as_ref().is_none_or(|s| s.subject != truth.subject) {
+                segments.extend(current.take());
+                current = Some(Segment {
+                    recording: recording.stream.clone(),
+                    subject: truth.subject.clone(),
+                    family: truth.family.clone(),
+                    frames: Vec::new(),
+                });
+            }
+            if let Some(segment) = current.as_mut() {
+                segment.frames.push((state.raw.z_i.clone(), state.raw.z_i_var.clone()));
+            }
+        }
+        segments.extend(current);
+        if let Some(changes) = &report.changes {
+            changes_all.add(changes);
+        }
+        reports.push(report);
+    }
+    let by_family = |m: BTreeMap<String, Vec<f64>>| {
+        m.into_iter()
+            .map(|(family, errors)| (family, metrics::angle_errors(&errors)))
+            .collect()
+    };
+    let overall = Overall {
+        recordings: reports.len(),
+        with_truth: reports.iter().filter(|r| r.has_truth).count(),
+        matched: reports.iter().map(|r| r.matched).sum(),
+        heading_raw: metrics::angle_errors(&raw_all),
+        heading_filtered: metrics::angle_errors(&filtered_all),
+        heading_raw_by_family: by_family(raw_family),
+        heading_filtered_by_family: by_family(filtered_family),
+        position: metrics::distances(&position_all),
+        changes: changes_all,
+        retrieval: options
+            .retrieval_frames
+            .iter()
+            .map(|n| metrics::retrieval(&segments, *n))
+            .collect(),
+    };
+    Report {
+        schema: "gdvae.evaluate/1",
+        convention: CONVENTION,
+        tolerance_frames: options.tolerance_frames,
+        overall,
+        recordings: reports,
+    }
+}
+
+fn horizontal_distance(state: &State, truth: &TruthFrame) -> f64 {
+    let dx = state.centre_m[0] as f64 - truth.translation[0];
+    let dy = state.centre_m[1] as f64 - truth.translation[1];
+    dx.hypot(dy)
+}
+
+fn recording_report(
+    recording: &Recording,
+    states: &[&State],
+    rejected: Option<usize>,
+    options: &EvaluateOptions,
+) -> RecordingReport {
+    let truth = &recording.truth;
+    let by_stamp: HashMap<u64, (usize, &TruthFrame)> =
+        truth.iter().enumerate().map(|(i, t)| (t.stamp_nanos, (i, t))).collect();
+    let mut subjects: Vec<String> = Vec::new();
+    let mut families: Vec<String> = Vec::new();
+    for t in truth {
+        if !subjects.contains(&t.subject) {
+            subjects.push(t.subject.clone());
+        }
+        if !families.contains(&t.family) {
+            families.push(t.family.clone());
+        }
+    }
+    let mut rows = Vec::new();
+    let (mut raw, mut filtered, mut position) = (Vec::new(), Vec::new(), Vec::new());
+    let mut matched_truth = vec![false; truth.len()];
+    let mut reported_at = Vec::new();
+    for state in states {
+        let Some(&(index, t)) = state.stamps.sensor_ns.and_then(|s| by_stamp.get(&s)) else {
+            continue;
+        };
+        matched_truth[index] = true;
+        raw.push(state.raw.yaw as f64 - t.yaw);
+        filtered.push(state.filtered.yaw as f64 - t.yaw);
+        position.push(horizontal_distance(state, t));
+        if state.event.is_some() {
+            reported_at.push(index);
+        }
+        rows.push(Row {
+            frame: index,
+            true_yaw: t.yaw,
+            raw_yaw: state.raw.yaw as f64,
+            filtered_yaw: state.filtered.yaw as f64,
+            filtered_yaw_std: state.filtered.yaw_std.map(|s| s as f64),
+            subject: subjects.iter().position(|s| *s == t.subject).unwrap_or(0),
+            identity: state.shape.identity,
+            distance: state.shape.distance as f64,
+            change_statistic: state.shape.change_statistic as f64,
+            change_reported: state.event.is_some(),
+        });
+    }
+    // True changes: frames whose subject differs from the frame before.
+    let true_at: Vec<usize> = (1..truth.len())
+        .filter(|&i| truth[i].subject != truth[i - 1].subject)
+        .collect();
+    let has_truth = !truth.is_empty();
+    let matched = rows.len();
+    let yaws: Vec<f64> = states.iter().map(|s| s.filtered.yaw as f64).collect();
+    RecordingReport {
+        stream: recording.stream.clone(),
+        path: recording.path.display().to_string(),
+        has_truth,
+        truth_frames: truth.len(),
+        states: states.len(),
+        rejected: rejected.unwrap_or(0),
+        matched,
+        states_without_truth: states.len() - matched,
+        truth_without_state: matched_truth.iter().filter(|m| !**m).count(),
+        subjects,
+        families,
+        heading_raw: has_truth.then(|| metrics::angle_errors(&raw)),
+        heading_filtered: has_truth.then(|| metrics::angle_errors(&filtered)),
+        position: has_truth.then(|| metrics::distances(&position)),
+        changes: has_truth
+            .then(|| metrics::match_changes(&true_at, &reported_at, options.tolerance_frames, truth.len())),
+        changes_reported: states.iter().filter(|s| s.event.is_some()).count(),
+        filtered_yaw_steps: metrics::angle_steps(&yaws),
+        rows,
+    }
+}
+
+/// Writes one PNG per recording with ground truth into `folder`; returns the files written.
+pub fn write_plots(
+    report: &Report,
+    folder: &Path,
+    gate: f64,
+    threshold: Option<f64>,
+) -> Result<Vec<PathBuf>, plot::PlotError> {
+    std::fs::create_dir_all(folder).map_err(|e| plot::PlotError(format!("{}: {e}", folder.display())))?;
+    let mut written = Vec::new();
+    for recording in report.recordings.iter().filter(|r| r.has_truth && !r.rows.is_empty()) {
+        let path = folder.join(format!("{}.png", recording.stream));
+        plot::recording(&path, recording, gate, threshold)?;
+        written.push(path);
+    }
+    Ok(written)
+}

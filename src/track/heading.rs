@@ -1,0 +1,261 @@
+//! Heading tracker: the subject's yaw about +z filtered over time from two measurements.
+//!
+//! - The encoder's yaw, every frame: noisy, and for near-symmetric bodies sometimes the back taken
+//!   for the front. It is used as an *axial* measurement (yaw modulo 180 degrees) for the angle, and
+//!   as one weak vote on which way is forward.
+//! - The direction of motion of the object's centre, when it moves faster than a threshold: a
+//!   walking subject faces where it goes. It measures the angle and votes strongly on the sense.
+//!
+//! The angle and its rate are a constant-turn-rate Kalman filter; measurements far outside their
+//! expected spread are down-weighted (Huber), so a burst of bad frames bends the track little. The
+//! sense (front or back) is a log-odds accumulated from the votes and clamped: the track turns by
+//! 180 degrees only when the evidence against it outweighs what it has gathered, never because of
+//! one frame. Everything is causal: each estimate uses the frames up to it.
+
+use std::collections::VecDeque;
+use std::f64::consts::{FRAC_PI_2, PI, TAU};
+
+use super::TrackSettings;
+
+/// Votes per frame on the sense (log-odds units): the encoder is a weak witness of front and
+/// back, motion a strong one.
+const ENCODER_VOTE: f64 = 0.25;
+const MOTION_VOTE: f64 = 1.0;
+/// Sense evidence a new track starts with: a few contrary frames may still turn it round.
+const INITIAL_SENSE: f64 = 1.0;
+/// Measurements beyond this many standard deviations of their innovation are down-weighted.
+const HUBER_SIGMAS: f64 = 2.5;
+/// Rate uncertainty of a new track (rad/s).
+const INITIAL_RATE_STD: f64 = 1.0;
+/// Weight of each frame in the running mean of the encoder's squared innovations (about 1 s at
+/// 30 Hz): an encoder that scatters more than `heading_std_deg` says gets a wider noise.
+const INNOVATION_WEIGHT: f64 = 1.0 / 30.0;
+
+/// `angle` wrapped to (-pi, pi].
+fn wrap(angle: f64) -> f64 {
+    let w = angle.rem_euclid(TAU);
+    if w > PI {
+        w - TAU
+    } else {
+        w
+    }
+}
+
+/// `angle` wrapped to (-pi/2, pi/2]: the difference of two axes.
+fn wrap_axial(angle: f64) -> f64 {
+    let w = angle.rem_euclid(PI);
+    if w > FRAC_PI_2 {
+        w - PI
+    } else {
+        w
+    }
+}
+
+/// What the tracker says after a frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Heading {
+    /// Filtered yaw (radians, unwrapped: continuous over turns).
+    pub yaw: f64,
+    /// Its standard deviation (radians).
+    pub yaw_std: f64,
+    /// Turn rate (rad/s).
+    pub rate: f64,
+    /// The motion direction used this frame, if the object moved fast enough.
+    pub motion_yaw: Option<f64>,
+    /// Sense evidence (log-odds that forward is right); the track turned round this frame if it
+    /// went below zero.
+    pub sense: f64,
+    pub turned_round: bool,
+}
+
+/// Velocity of the object's centre: least-squares slope of the positions over a sliding window.
+#[derive(Debug, Clone)]
+struct Motion {
+    window_s: f64,
+    samples: VecDeque<(f64, f64, f64)>,
+}
+
+impl Motion {
+    fn push(&mut self, t: f64, x: f64, y: f64) -> Option<(f64, f64)> {
+        self.samples.push_back((t, x, y));
+        while self.samples.front().is_some_and(|(t0, _, _)| t - t0 > self.window_s) {
+            self.samples.pop_front();
+        }
+        let n = self.samples.len() as f64;
+        let span = t - self.samples.front()?.0;
+        if self.samples.len() < 4 || span < 0.6 * self.window_s {
+            return None;
+        }
+        let mean_t = self.samples.iter().map(|s| s.0).sum::<f64>() / n;
+        let mean_x = self.samples.iter().map(|s| s.1).sum::<f64>() / n;
+        let mean_y = self.samples.iter().map(|s| s.2).sum::<f64>() / n;
+        let stt: f64 = self.samples.iter().map(|s| (s.0 - mean_t).powi(2)).sum();
+        if stt <= 0.0 {
+            return None;
+        }
+        let vx = self
+            .samples
+            .iter()
+            .map(|s| (s.0 - mean_t) * (s.1 - mean_x))
+            .sum::<f64>()
+            / stt;
+        let vy = self
+            .samples
+            .iter()
+            .map(|s| (s.0 - mean_t) * (s.2 - mean_y))
+            .sum::<f64>()
+            / stt;
+        Some((vx, vy))
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct HeadingFilter {
+    measurement_var: f64,
+    accel_var: f64,
+    from_motion: bool,
+    min_speed: f64,
+    motion_var: f64,
+    max_sense: f64,
+    motion: Motion,
+    /// yaw, rate, covariance [[yy, yr], [ry, rr]], sense log-odds.
+    state: Option<([f64; 2], [[f64; 2]; 2], f64)>,
+    time: f64,
+    /// Running mean of the encoder's squared axial innovation (rad^2).
+    innovation_power: f64,
+}
+
+impl HeadingFilter {
+    pub fn new(settings: &TrackSettings) -> Self {
+        Self {
+            measurement_var: (settings.heading_std_deg as f64).to_radians().powi(2),
+            accel_var: (settings.heading_accel_std as f64).powi(2),
+            from_motion: settings.heading_from_motion,
+            min_speed: settings.motion_min_speed_mps as f64,
+            motion_var: (settings.motion_heading_std_deg as f64).to_radians().powi(2),
+            max_sense: settings.heading_flip_evidence as f64,
+            motion: Motion {
+                window_s: settings.motion_window_s as f64,
+                samples: VecDeque::new(),
+            },
+            state: None,
+            time: 0.0,
+            innovation_power: (settings.heading_std_deg as f64).to_radians().powi(2),
+        }
+    }
+
+    /// Forget the track (a new object): the next frame starts a new one. Motion history is kept,
+    /// it belongs to whatever is in view.
+    pub fn reset(&mut self) {
+        self.state = None;
+    }
+
+    /// One frame: the encoder's yaw (radians), the object's centre (m, gravity frame) and the time
+    /// since the previous frame (s).
+    pub fn update(&mut self, encoder_yaw: f64, centre: [f64; 2], dt: f64) -> Heading {
+        self.time += dt;
+        let velocity = self.motion.push(self.time, centre[0], centre[1]);
+        let motion = velocity.and_then(|(vx, vy)| {
+            let speed = vx.hypot(vy);
+            // Slower motion points less surely: the spread grows as the speed nears the threshold.
+            (self.from_motion && speed >= self.min_speed).then(|| {
+                (
+                    vy.atan2(vx),
+                    self.motion_var * (2.0 * self.min_speed / speed).max(1.0).powi(2),
+                )
+            })
+        });
+        let (mut x, mut p, mut sense) = match self.state {
+            Some(s) => s,
+            None => {
+                // Start where the motion points if it does (the encoder may face backwards), else
+                // where the encoder points.
+                let start = motion.map(|(m, _)| m).unwrap_or(encoder_yaw);
+                let start = start + TAU * ((encoder_yaw - start) / TAU).round();
+                let state = (
+                    [start, 0.0],
+                    [[self.measurement_var, 0.0], [0.0, INITIAL_RATE_STD.powi(2)]],
+                    INITIAL_SENSE,
+                );
+                self.state = Some(state);
+                return self.heading(state, motion.map(|(m, _)| m), false);
+            }
+        };
+        // Predict: constant turn rate, white angular acceleration.
+        x[0] += x[1] * dt;
+        let (dt2, dt3, dt4) = (dt * dt, dt * dt * dt, dt * dt * dt * dt);
+        let p00 = p[0][0] + dt * (p[1][0] + p[0][1]) + dt2 * p[1][1] + self.accel_var * dt4 / 4.0;
+        let p01 = p[0][1] + dt * p[1][1] + self.accel_var * dt3 / 2.0;
+        let p11 = p[1][1] + self.accel_var * dt2;
+        p = [[p00, p01], [p01, p11]];
+
+        // Sense votes, then turn round if the evidence says the track faces backwards.
+        // An encoder that scatters widely is a weaker witness of front and back too.
+        let encoder_agrees = wrap(encoder_yaw - x[0]).abs() < FRAC_PI_2;
+        let vote = ENCODER_VOTE * (self.measurement_var / self.innovation_power.max(self.measurement_var));
+        sense += if encoder_agrees { vote } else { -vote };
+        if let Some((m, _)) = motion {
+            sense += if wrap(m - x[0]).abs() < FRAC_PI_2 {
+                MOTION_VOTE
+            } else {
+                -MOTION_VOTE
+            };
+        }
+        let mut turned_round = false;
+        if sense < 0.0 {
+            x[0] += PI;
+            sense = -sense;
+            turned_round = true;
+        }
+        sense = sense.min(self.max_sense);
+
+        // Measurements: the encoder's axis, then the motion's direction (when it agrees on sense).
+        // The encoder's noise: as configured, or wider when its recent innovations say so (an
+        // encoder that cannot tell this body's heading scatters over all angles).
+        let axial = wrap_axial(encoder_yaw - x[0]);
+        self.innovation_power += INNOVATION_WEIGHT * (axial * axial - self.innovation_power);
+        let encoder_var = self.measurement_var.max(self.innovation_power - p[0][0]);
+        Self::correct(&mut x, &mut p, axial, encoder_var);
+        if let Some((m, variance)) = motion {
+            let innovation = wrap(m - x[0]);
+            if innovation.abs() < FRAC_PI_2 {
+                Self::correct(&mut x, &mut p, innovation, variance);
+            }
+        }
+        let state = (x, p, sense);
+        self.state = Some(state);
+        self.heading(state, motion.map(|(m, _)| m), turned_round)
+    }
+
+    /// Kalman update of the angle with a robustly weighted scalar innovation.
+    fn correct(x: &mut [f64; 2], p: &mut [[f64; 2]; 2], innovation: f64, variance: f64) {
+        let spread = p[0][0] + variance;
+        let standardized = innovation.abs() / spread.sqrt();
+        let variance = if standardized > HUBER_SIGMAS {
+            // Huber: beyond the threshold the measurement counts as if it were that far.
+            variance * (standardized / HUBER_SIGMAS).powi(2)
+        } else {
+            variance
+        };
+        let s = p[0][0] + variance;
+        let k = [p[0][0] / s, p[1][0] / s];
+        x[0] += k[0] * innovation;
+        x[1] += k[1] * innovation;
+        let p00 = (1.0 - k[0]) * p[0][0];
+        let p01 = (1.0 - k[0]) * p[0][1];
+        let p11 = p[1][1] - k[1] * p[0][1];
+        *p = [[p00, p01], [p01, p11]];
+    }
+
+    fn heading(&self, state: ([f64; 2], [[f64; 2]; 2], f64), motion_yaw: Option<f64>, turned_round: bool) -> Heading {
+        let (x, p, sense) = state;
+        Heading {
+            yaw: x[0],
+            yaw_std: p[0][0].max(0.0).sqrt(),
+            rate: x[1],
+            motion_yaw,
+            sense,
+            turned_round,
+        }
+    }
+}

@@ -1,0 +1,214 @@
+//! Track: per stream, what the encoder says frame by frame turned into estimates over time.
+//!
+//! - `shape`: z_I fused over the frames of one identity; identity changes found by a sequential
+//!   test on how far each frame's z_I lies from the fused estimate.
+//! - `heading`: the yaw tracked by a Kalman filter on angle and turn rate, fed by the encoder's yaw
+//!   and the direction of motion, with the front/back sense decided by accumulated evidence.
+//! - `pose`: one-euro smoothing of z_E and the rotation (and of the yaw, when `heading = "one-euro"`).
+//!
+//! `StreamTracker` holds the three for one stream; the pipeline's track stage owns one per stream.
+
+pub mod heading;
+pub mod pose;
+pub mod shape;
+
+use serde::{Deserialize, Serialize};
+
+pub use heading::{Heading, HeadingFilter};
+pub use pose::{confidence_from_log_variance, unwrap, yaw_of, OneEuro, Pose, PoseFilter};
+pub use shape::{IdentityChange, ShapeFilter, ShapeUpdate};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Smoothing {
+    None,
+    OneEuro,
+}
+
+/// How the published (filtered) heading is made.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum HeadingMode {
+    /// The heading tracker (`track::heading`).
+    Tracker,
+    /// The yaw of the one-euro-smoothed rotation.
+    OneEuro,
+}
+
+/// How identity changes are found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ChangeDetector {
+    /// CUSUM of the per-frame distances (`track::shape`).
+    Cusum,
+    /// `switch_frames` frames beyond the gate in a row.
+    Consecutive,
+}
+
+/// `[track]`: every setting of the track stage. `config/default.toml` documents each key;
+/// README "Tracking" says how to tune them for a new bundle or sensor.
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrackSettings {
+    /// A frame's z_I is an outlier (not fused) when its mean squared standardized distance to the
+    /// fused estimate (per dimension) exceeds this.
+    pub shape_gate: f32,
+    /// A change needs at least this many frames of evidence.
+    pub switch_frames: usize,
+    /// Floor on each fused z_I variance, so the filter never becomes certain beyond what
+    /// correlated frames justify (and follows slow drift).
+    pub min_shape_variance: f32,
+    /// The bundle's z_I variance calibration: the encoder's variances are multiplied by this
+    /// (1: as reported; > 1 when they are narrower than the frames' spread about the fused mean).
+    pub shape_variance_scale: f32,
+    pub change_detector: ChangeDetector,
+    /// CUSUM drift allowance k: distances below it count as agreement.
+    pub cusum_drift: f32,
+    /// CUSUM threshold h: a change is reported when the statistic reaches it.
+    pub cusum_threshold: f32,
+    /// Smoothing of z_E and the rotation.
+    pub smoothing: Smoothing,
+    /// One-euro filter: cutoff at rest (Hz) and its increase per unit of speed.
+    pub min_cutoff_hz: f32,
+    pub beta: f32,
+    /// Frame rate assumed when frames carry no usable stamps.
+    pub nominal_rate_hz: f32,
+    /// The published heading: the tracker, or the one-euro-smoothed yaw.
+    pub heading: HeadingMode,
+    /// Standard deviation of the encoder's yaw as a measurement (degrees).
+    pub heading_std_deg: f32,
+    /// Standard deviation of the heading's angular acceleration (rad/s^2): how fast turns may change.
+    pub heading_accel_std: f32,
+    /// Use the direction of motion of the object's centre as a heading measurement.
+    pub heading_from_motion: bool,
+    /// The centre's velocity is its least-squares slope over this window (s).
+    pub motion_window_s: f32,
+    /// Below this speed (m/s) the direction of motion is not used.
+    pub motion_min_speed_mps: f32,
+    /// Standard deviation of the motion direction as a measurement (degrees), at twice the
+    /// minimum speed and above; it widens towards the minimum speed.
+    pub motion_heading_std_deg: f32,
+    /// Most front/back evidence the track keeps (log-odds): how much contrary evidence it takes to
+    /// turn the track round by 180 degrees.
+    pub heading_flip_evidence: f32,
+}
+
+impl Default for TrackSettings {
+    fn default() -> Self {
+        Self {
+            shape_gate: 2.0,
+            switch_frames: 5,
+            min_shape_variance: 4e-4,
+            shape_variance_scale: 1.0,
+            change_detector: ChangeDetector::Cusum,
+            cusum_drift: 2.0,
+            cusum_threshold: 10.0,
+            smoothing: Smoothing::OneEuro,
+            min_cutoff_hz: 1.0,
+            beta: 0.5,
+            nominal_rate_hz: 30.0,
+            heading: HeadingMode::Tracker,
+            heading_std_deg: 25.0,
+            heading_accel_std: 2.0,
+            heading_from_motion: true,
+            motion_window_s: 1.0,
+            motion_min_speed_mps: 0.3,
+            motion_heading_std_deg: 10.0,
+            heading_flip_evidence: 6.0,
+        }
+    }
+}
+
+impl TrackSettings {
+    pub fn validate(&self) -> Result<(), String> {
+        let positive = [
+            ("shape_gate", self.shape_gate),
+            ("min_shape_variance", self.min_shape_variance),
+            ("shape_variance_scale", self.shape_variance_scale),
+            ("cusum_drift", self.cusum_drift),
+            ("cusum_threshold", self.cusum_threshold),
+            ("min_cutoff_hz", self.min_cutoff_hz),
+            ("nominal_rate_hz", self.nominal_rate_hz),
+            ("heading_std_deg", self.heading_std_deg),
+            ("heading_accel_std", self.heading_accel_std),
+            ("motion_window_s", self.motion_window_s),
+            ("motion_min_speed_mps", self.motion_min_speed_mps),
+            ("motion_heading_std_deg", self.motion_heading_std_deg),
+            ("heading_flip_evidence", self.heading_flip_evidence),
+        ];
+        for (name, value) in positive {
+            if !(value > 0.0 && value.is_finite()) {
+                return Err(format!("track.{name} = {value} must be positive and finite"));
+            }
+        }
+        if self.switch_frames == 0 {
+            return Err("track.switch_frames must be at least 1".into());
+        }
+        if !(self.beta >= 0.0 && self.beta.is_finite()) {
+            return Err(format!("track.beta = {} must be >= 0", self.beta));
+        }
+        Ok(())
+    }
+}
+
+/// The three filters of one stream.
+#[derive(Debug, Clone)]
+pub struct StreamTracker {
+    pub shape: ShapeFilter,
+    pub pose: PoseFilter,
+    pub heading: HeadingFilter,
+    mode: HeadingMode,
+}
+
+/// What the filters say after one frame.
+#[derive(Debug, Clone)]
+pub struct Tracked {
+    pub shape: ShapeUpdate,
+    /// z_E and the rotation smoothed; with the tracker, `q` and `yaw` carry the tracked heading.
+    pub pose: Pose,
+    /// The tracker's output (None under `heading = "one-euro"`).
+    pub heading: Option<Heading>,
+}
+
+impl StreamTracker {
+    pub fn new(settings: &TrackSettings) -> Self {
+        Self {
+            shape: ShapeFilter::new(settings),
+            pose: PoseFilter::new(settings),
+            heading: HeadingFilter::new(settings),
+            mode: settings.heading,
+        }
+    }
+
+    /// One encoded frame: z_I (mean, log-variance), the rotation q [w, x, y, z], z_E, the object's
+    /// centre (m, gravity frame) and the time since the stream's previous frame (s).
+    pub fn update(&mut self, z_i: (&[f32], &[f32]), q: [f32; 4], z_e: &[f32], centre_m: [f32; 3], dt: f32) -> Tracked {
+        let shape = self.shape.update(z_i.0, z_i.1);
+        if shape.change.is_some() {
+            self.heading.reset();
+        }
+        let mut pose = self.pose.update(q, z_e, dt);
+        let heading = match self.mode {
+            HeadingMode::OneEuro => None,
+            HeadingMode::Tracker => {
+                let heading =
+                    self.heading
+                        .update(pose.yaw_raw as f64, [centre_m[0] as f64, centre_m[1] as f64], dt as f64);
+                // Keep the smoothed rotation's tilt, give it the tracked yaw.
+                pose.q = with_yaw(pose.q, heading.yaw as f32);
+                pose.yaw = heading.yaw as f32;
+                Some(heading)
+            }
+        };
+        Tracked { shape, pose, heading }
+    }
+}
+
+/// `q` [w, x, y, z] turned about +z so that its yaw becomes `yaw`.
+pub fn with_yaw(q: [f32; 4], yaw: f32) -> [f32; 4] {
+    let delta = (yaw - yaw_of(&q)) / 2.0;
+    let (s, c) = delta.sin_cos();
+    // r = (c, 0, 0, s) applied on the left: r * q.
+    let [w, x, y, z] = q;
+    [c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w]
+}

@@ -1,0 +1,194 @@
+//! `evaluate`: its measures on cases computed by hand, and the command on a short generated
+//! recording (with and without its ground-truth channel), where the counts are known exactly.
+
+use std::path::Path;
+
+use gdvae_node::evaluate::metrics::{angle_errors, match_changes, retrieval, Segment};
+
+use crate::helpers::repo;
+
+#[test]
+fn changes_are_matched_within_the_tolerance_and_the_rest_are_false() {
+    // True changes at 10 and 50; reports at 3 (before any change), 12 (finds 10 after 2 frames),
+    // 13 (a second report for the same change), 56 (one frame too late for 50 with tolerance 5),
+    // 70.
+    let c = match_changes(&[10, 50], &[3, 12, 13, 56, 70], 5, 100);
+    assert_eq!((c.true_changes, c.reported, c.found, c.false_changes), (2, 5, 1, 4));
+    assert_eq!(c.delays_frames, vec![2]);
+    assert_eq!(c.recall, Some(0.5));
+    assert_eq!(c.false_per_1000_frames, Some(40.0));
+    // The last frame of the tolerance counts; a report belongs to the change before it.
+    let c = match_changes(&[10, 12], &[15, 17], 5, 40);
+    assert_eq!(
+        (c.found, c.false_changes),
+        (1, 1),
+        "15 is after the second change: it finds 12, not 10"
+    );
+    assert_eq!(c.delays_frames, vec![3]);
+    let c = match_changes(&[10], &[15], 5, 40);
+    assert_eq!((c.found, c.false_changes), (1, 0));
+    let none = match_changes(&[], &[], 10, 0);
+    assert_eq!((none.recall, none.false_per_1000_frames), (None, None));
+}
+
+#[test]
+fn angle_errors_wrap_and_summarise() {
+    let errors: Vec<f64> = [0.0f64, 10.0, -20.0, 40.0, 190.0]
+        .iter()
+        .map(|d| d.to_radians())
+        .collect();
+    let a = angle_errors(&errors);
+    assert_eq!(a.count, 5);
+    let close = |x: Option<f64>, y: f64| (x.unwrap() - y).abs() < 1e-9;
+    // |errors| sorted: 0, 10, 20, 40, 170 (190 wraps to -170).
+    assert!(close(a.median_deg, 20.0), "{a:?}");
+    assert!(close(a.p90_deg, 118.0), "{a:?}");
+    assert!(close(a.over_30_deg, 0.4) && close(a.over_150_deg, 0.2), "{a:?}");
+}
+
+#[test]
+fn retrieval_counts_a_query_right_when_its_own_reference_is_nearest() {
+    let segment = |subject: &str, family: &str, first: [f32; 2], second: [f32; 2]| Segment {
+        recording: "r".into(),
+        subject: subject.into(),
+        family: family.into(),
+        frames: vec![
+            (first.to_vec(), vec![0.1, 0.1]),
+            (first.to_vec(), vec![0.1, 0.1]),
+            (second.to_vec(), vec![0.1, 0.1]),
+            (second.to_vec(), vec![0.1, 0.1]),
+        ],
+    };
+    let segments = vec![
+        segment("a", "quadruped", [0.0, 0.0], [0.05, 0.0]),
+        segment("b", "quadruped", [1.0, 0.0], [1.0, 0.05]),
+        // c's later frames look like b: wrong among all, right among bipeds (it is the only one).
+        segment("c", "biped", [0.0, 1.0], [0.95, 0.0]),
+    ];
+    let r = retrieval(&segments, 1);
+    assert_eq!(r.queries, 3);
+    assert!((r.top1.unwrap() - 2.0 / 3.0).abs() < 1e-12, "{r:?}");
+    assert_eq!(r.top1_same_family, Some(1.0));
+    // Two frames after the half would need 4 frames each: none of these segments takes part.
+    assert_eq!(retrieval(&segments, 3).queries, 0);
+    assert_eq!(retrieval(&segments, 3).top1, None);
+}
+
+/// A 2 s recording, one quadruped replaced by another at 1 s: 60 frames, one true change.
+fn short_recording(path: &Path) {
+    use gdvae_sim::family::Family;
+    use gdvae_sim::motion::{MotionKind, MotionSpec};
+    use gdvae_sim::recording::{write_recording, RecordingOptions};
+    use gdvae_sim::scenario::{Scenario, ViewSpec};
+    let spec = MotionSpec {
+        families: vec![Family::Quadruped],
+        kind: MotionKind::Walk,
+        fps: 30.0,
+        duration: 2.0,
+        switch_times: vec![1.0],
+        area: [0.4, 0.7],
+        seed: 31,
+    };
+    let view = ViewSpec {
+        camera_distance: 2.8,
+        ground_half_extent: 1.2,
+        decimation: 2,
+        ..ViewSpec::default()
+    };
+    let scenario = Scenario::new(spec, view).unwrap();
+    write_recording(
+        &scenario,
+        path,
+        RecordingOptions {
+            depth_images: false,
+            compression: true,
+        },
+        |_, _| {},
+    )
+    .unwrap();
+}
+
+/// The same recording without its ground-truth channel, rewritten by the mcap crate.
+fn without_truth(from: &Path, to: &Path) {
+    let bytes = std::fs::read(from).unwrap();
+    let mut writer = mcap::Writer::new(std::io::BufWriter::new(std::fs::File::create(to).unwrap())).unwrap();
+    for message in mcap::MessageStream::new(&bytes).unwrap() {
+        let message = message.unwrap();
+        if message.channel.topic != "/sim/ground_truth" {
+            writer.write(&message).unwrap();
+        }
+    }
+    writer.finish().unwrap();
+}
+
+#[test]
+fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
+    let dir = tempfile::tempdir().unwrap();
+    let with = dir.path().join("switch.mcap");
+    let without = dir.path().join("bare.mcap");
+    short_recording(&with);
+    without_truth(&with, &without);
+    let plots = dir.path().join("plots");
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
+        .current_dir(repo())
+        .args(["evaluate", "--config", "config/replay.toml", "--out", "-", "--plots"])
+        .arg(&plots)
+        .arg(&with)
+        .arg(&without)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "evaluate failed: {stderr}");
+    assert!(
+        stderr.contains("bare.mcap: no /sim/ground_truth channel"),
+        "the recording without truth is named: {stderr}"
+    );
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let recordings = report["recordings"].as_array().unwrap();
+    assert_eq!(recordings.len(), 2);
+    let r = &recordings[0];
+    assert_eq!(r["truth_frames"], 60);
+    let (states, rejected) = (r["states"].as_u64().unwrap(), r["rejected"].as_u64().unwrap());
+    assert_eq!(states + rejected, 60, "every frame is a state or a counted rejection");
+    assert_eq!(r["matched"], states, "every state has its truth frame");
+    assert_eq!(r["truth_without_state"], rejected);
+    assert_eq!(r["subjects"].as_array().unwrap().len(), 2);
+    assert_eq!(r["changes"]["true_changes"], 1);
+    assert_eq!(r["changes"]["frames"], 60);
+    assert_eq!(r["heading_filtered"]["count"], states);
+    let found = r["changes"]["found"].as_u64().unwrap();
+    let false_changes = r["changes"]["false_changes"].as_u64().unwrap();
+    assert_eq!(found + false_changes, r["changes"]["reported"].as_u64().unwrap());
+    // Without truth: what can be said without it, and no change counts against truth.
+    let bare = &recordings[1];
+    assert_eq!(bare["has_truth"], false);
+    assert!(bare["changes"].is_null() && bare["heading_filtered"].is_null());
+    assert_eq!(bare["states"], states, "the same frames replay");
+    assert_eq!(
+        bare["changes_reported"], r["changes"]["reported"],
+        "the same tracker, the same reports"
+    );
+    assert!(bare["filtered_yaw_steps"]["count"].as_u64().unwrap() + 1 == states);
+    // Overall: only the recording with truth; retrieval needs 2 n frames per subject (30 each).
+    let o = &report["overall"];
+    assert_eq!((o["recordings"].as_u64(), o["with_truth"].as_u64()), (Some(2), Some(1)));
+    let queries: Vec<u64> = o["retrieval"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["queries"].as_u64().unwrap())
+        .collect();
+    let segment_lengths_ok = states == 60; // with a rejection a segment may fall under 2 n frames
+    if segment_lengths_ok {
+        assert_eq!(
+            queries,
+            vec![2, 2, 0],
+            "n = 1, 5: both subjects; n = 30 needs 60 frames each"
+        );
+    }
+    assert!(
+        plots.join("switch.png").is_file(),
+        "a plot for the recording with truth"
+    );
+    assert!(!plots.join("bare.png").exists(), "none without truth");
+}
