@@ -1,5 +1,5 @@
 # The project's entry points. `make test` is what CI runs (.ci/run).
-.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples
+.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking
 
 VENV := .venv
 PYTHON := $(VENV)/bin/python
@@ -28,6 +28,12 @@ test-python: venv binaries
 # tests build them, so that after `test-rust` nothing is compiled a second time.
 binaries:
 	cargo test --workspace --release --no-run
+
+# The tracking benchmark (README "Tracking benchmark"): settings are chosen on `tune`, reported on
+# `holdout`. Recordings are made once into $(BENCH_DIR) (default /work/data/bench-tracking).
+bench-tracking: onnxruntime node sim
+	bench/tracking.sh tune
+	bench/tracking.sh holdout
 
 # Build the simulator CLI (target/release/sim).
 sim:

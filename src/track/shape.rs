@@ -8,8 +8,9 @@
 //!   k = `cusum_drift` and clip = k + h / `switch_frames`; a change is reported when S_t reaches
 //!   h = `cusum_threshold`, so never on fewer than `switch_frames` frames. A small persistent shift
 //!   accumulates where "k outliers in a row" would miss it; one wild frame adds at most h /
-//!   `switch_frames`. While S_t > 0 the frames are held, not fused: if the suspicion clears they
-//!   are fused late, if a change is reported the new identity starts from them.
+//!   `switch_frames`. While S_t > 0 the frames are held, not fused (once the estimate rests on 30
+//!   frames): if the suspicion clears they are fused late, if a change is reported the new
+//!   identity starts from them.
 //! - `consecutive`: `switch_frames` frames beyond the gate in a row.
 //!
 //! The fused variance has a floor (`min_shape_variance`), which makes the estimate a slowly
@@ -47,7 +48,14 @@ struct Held {
     mean: Vec<f32>,
     variance: Vec<f32>,
     inlier: bool,
+    /// Already in the estimate (a young estimate takes its inliers at once).
+    fused: bool,
 }
+
+/// An estimate of fewer frames than this takes its inliers at once, even under suspicion: holding
+/// them would leave it resting on a handful of frames whose common error every later frame would
+/// seem to confirm.
+const MATURE_FRAMES: u64 = 30;
 
 /// Causal precision-weighted fusion of per-frame z_I Gaussians, with outlier gating and identity
 /// change detection.
@@ -108,6 +116,7 @@ impl ShapeFilter {
                 mean: mean.to_vec(),
                 variance,
                 inlier: true,
+                fused: true,
             }]);
             return self.record(true, 0.0, None);
         }
@@ -116,6 +125,7 @@ impl ShapeFilter {
             mean: mean.to_vec(),
             variance,
             inlier: distance <= self.gate,
+            fused: false,
         };
         match self.detector {
             ChangeDetector::Consecutive => self.consecutive(frame, distance),
@@ -139,7 +149,7 @@ impl ShapeFilter {
         self.record(true, distance, Some(change))
     }
 
-    fn cusum(&mut self, frame: Held, distance: f32) -> ShapeUpdate {
+    fn cusum(&mut self, mut frame: Held, distance: f32) -> ShapeUpdate {
         let clip = self.drift + self.threshold / self.switch_frames as f32;
         let evidence = if distance.is_finite() { distance.min(clip) } else { clip };
         self.statistic = (self.statistic + evidence - self.drift).max(0.0);
@@ -147,7 +157,7 @@ impl ShapeFilter {
         if self.statistic <= 0.0 {
             // No suspicion (any more): what was held joins the estimate, then this frame.
             for held in std::mem::take(&mut self.held) {
-                if held.inlier {
+                if held.inlier && !held.fused {
                     self.fuse(&held.mean, &held.variance);
                 }
             }
@@ -156,10 +166,14 @@ impl ShapeFilter {
             }
             return self.record(inlier, distance, None);
         }
+        if inlier && self.frames < MATURE_FRAMES {
+            self.fuse(&frame.mean, &frame.variance);
+            frame.fused = true;
+        }
         self.held.push(frame);
         if self.held.len() > MAX_HELD {
             let oldest = self.held.remove(0);
-            if oldest.inlier {
+            if oldest.inlier && !oldest.fused {
                 self.fuse(&oldest.mean, &oldest.variance);
             }
         }

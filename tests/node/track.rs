@@ -242,19 +242,25 @@ fn frames_reported(
         .collect()
 }
 
+/// Settings for frames with calibrated variances and a one-sigma change.
+fn drift_settings() -> TrackSettings {
+    TrackSettings {
+        shape_gate: 2.5,
+        switch_frames: 3,
+        cusum_drift: 1.3,
+        cusum_threshold: 4.0,
+        min_shape_variance: 1e-3,
+        ..TrackSettings::default()
+    }
+}
+
 #[test]
 fn cusum_finds_a_small_same_family_shift_that_consecutive_outliers_miss() {
-    // A same-family switch: every dimension moves by 0.6 sigma. Single frames of the new object sit
-    // mostly inside the gate (distance ~ 1.36 against an inlier's 1), so "5 outliers in a row" at
-    // gate 2 sees nothing, while CUSUM (k 1.15, h 4) accumulates it within a few frames.
-    let (sigma, shift) = (0.1f32, 0.06f32);
-    let base = TrackSettings {
-        shape_gate: 2.0,
-        switch_frames: 3,
-        cusum_drift: 1.15,
-        cusum_threshold: 4.0,
-        ..TrackSettings::default()
-    };
+    // A same-family switch: every dimension moves by one sigma. Single frames of the new object sit
+    // mostly inside the gate (distance ~ 2 against an inlier's 1, gate 2.5), so "3 outliers in a
+    // row" rarely sees it, while CUSUM (k 1.3, h 4) accumulates it within about 7 frames.
+    let (sigma, shift) = (0.1f32, 0.1f32);
+    let base = drift_settings();
     let consecutive = TrackSettings {
         change_detector: ChangeDetector::Consecutive,
         ..base.clone()
@@ -299,16 +305,9 @@ fn cusum_finds_a_small_same_family_shift_that_consecutive_outliers_miss() {
 
 #[test]
 fn slow_drift_of_the_same_size_is_not_a_change() {
-    // The same 0.6 sigma per dimension, reached over 6 s (pose-driven drift of z_I): the estimate
+    // The same one sigma per dimension, reached over 6 s (pose-driven drift of z_I): the estimate
     // follows it (min_shape_variance makes it forget), so no change is reported.
-    let settings = TrackSettings {
-        shape_gate: 2.0,
-        switch_frames: 3,
-        cusum_drift: 1.15,
-        cusum_threshold: 4.0,
-        min_shape_variance: 1e-3,
-        ..TrackSettings::default()
-    };
+    let settings = drift_settings();
     for seed in 0..20 {
         let mut rng = ChaCha8Rng::seed_from_u64(200 + seed);
         let mut filter = ShapeFilter::new(&settings);
@@ -316,7 +315,7 @@ fn slow_drift_of_the_same_size_is_not_a_change() {
             filter.update(&mean, &lv);
         }
         for step in 0..180 {
-            let offset = 0.06 * step as f32 / 180.0;
+            let offset = 0.1 * step as f32 / 180.0;
             let (mean, lv) = frames(&object(offset), 0.1, 1, &mut rng).remove(0);
             let update = filter.update(&mean, &lv);
             assert!(
@@ -324,7 +323,7 @@ fn slow_drift_of_the_same_size_is_not_a_change() {
                 "seed {seed}: drift reported as a change at step {step}"
             );
         }
-        for (mean, lv) in frames(&object(0.06), 0.1, 60, &mut rng) {
+        for (mean, lv) in frames(&object(0.1), 0.1, 60, &mut rng) {
             assert!(
                 filter.update(&mean, &lv).change.is_none(),
                 "seed {seed}: change after the drift"
@@ -336,22 +335,16 @@ fn slow_drift_of_the_same_size_is_not_a_change() {
 
 #[test]
 fn variance_scale_calibrates_a_bundle_whose_variances_are_too_wide() {
-    // Reported variances 9x the true noise: distances average ~1/9 and a 0.6-sigma shift hides in
+    // Reported variances 9x the true noise: distances average ~1/9 and a one-sigma shift hides in
     // them; shape_variance_scale = 1/9 restores the calibrated distances and the change is found.
-    let settings = TrackSettings {
-        shape_gate: 2.0,
-        switch_frames: 3,
-        cusum_drift: 1.15,
-        cusum_threshold: 4.0,
-        ..TrackSettings::default()
-    };
+    let settings = drift_settings();
     let scaled = TrackSettings {
         shape_variance_scale: 1.0 / 9.0,
         ..settings.clone()
     };
     let mut rng = ChaCha8Rng::seed_from_u64(7);
     let first = frames_reported(&object(0.0), 0.1, 9.0, 90, &mut rng);
-    let second = frames_reported(&object(0.06), 0.1, 9.0, 60, &mut rng);
+    let second = frames_reported(&object(0.1), 0.1, 9.0, 60, &mut rng);
     let mut raw = ShapeFilter::new(&settings);
     let mut calibrated = ShapeFilter::new(&scaled);
     let mut distances = Vec::new();
