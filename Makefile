@@ -29,11 +29,12 @@ test-python: venv binaries
 binaries:
 	cargo test --workspace --release --no-run
 
-# The tracking benchmark (README "Tracking benchmark"): settings are chosen on `tune`, reported on
-# `holdout`. Recordings are made once into $(BENCH_DIR) (default /work/data/bench-tracking).
+# The tracking benchmark (README "Tracking benchmark"): settings are chosen on `tune`, checked on
+# `holdout` and `final`. Recordings are made once into $(BENCH_DIR) (default /work/data/bench-tracking).
 bench-tracking: onnxruntime node sim
 	bench/tracking.sh tune
 	bench/tracking.sh holdout
+	bench/tracking.sh final
 
 # Build the simulator CLI (target/release/sim).
 sim:

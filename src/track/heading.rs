@@ -27,7 +27,7 @@ const INITIAL_SENSE: f64 = 1.0;
 const HUBER_SIGMAS: f64 = 2.5;
 /// Rate uncertainty of a new track (rad/s).
 const INITIAL_RATE_STD: f64 = 1.0;
-/// Weight of each frame in the running mean of the encoder's squared innovations (about 1 s at
+/// Weight of each frame in the running mean of the encoder's frame-to-frame jitter (about 1 s at
 /// 30 Hz): an encoder that scatters more than `heading_std_deg` says gets a wider noise.
 const INNOVATION_WEIGHT: f64 = 1.0 / 30.0;
 
@@ -121,8 +121,11 @@ pub struct HeadingFilter {
     /// yaw, rate, covariance [[yy, yr], [ry, rr]], sense log-odds.
     state: Option<([f64; 2], [[f64; 2]; 2], f64)>,
     time: f64,
-    /// Running mean of the encoder's squared axial innovation (rad^2).
-    innovation_power: f64,
+    /// Running mean of the squared axial difference between consecutive encoder yaws (rad^2):
+    /// twice the encoder's noise variance, measured without reference to the track (so a track
+    /// that went astray cannot talk itself into ignoring the encoder).
+    jitter_power: f64,
+    previous_encoder_yaw: Option<f64>,
 }
 
 impl HeadingFilter {
@@ -140,7 +143,8 @@ impl HeadingFilter {
             },
             state: None,
             time: 0.0,
-            innovation_power: (settings.heading_std_deg as f64).to_radians().powi(2),
+            jitter_power: 2.0 * (settings.heading_std_deg as f64).to_radians().powi(2),
+            previous_encoder_yaw: None,
         }
     }
 
@@ -154,6 +158,11 @@ impl HeadingFilter {
     /// since the previous frame (s).
     pub fn update(&mut self, encoder_yaw: f64, centre: [f64; 2], dt: f64) -> Heading {
         self.time += dt;
+        if let Some(previous) = self.previous_encoder_yaw {
+            let step = wrap_axial(encoder_yaw - previous);
+            self.jitter_power += INNOVATION_WEIGHT * (step * step - self.jitter_power);
+        }
+        self.previous_encoder_yaw = Some(encoder_yaw);
         let velocity = self.motion.push(self.time, centre[0], centre[1]);
         let motion = velocity.and_then(|(vx, vy)| {
             let speed = vx.hypot(vy);
@@ -192,7 +201,7 @@ impl HeadingFilter {
         // Sense votes, then turn round if the evidence says the track faces backwards.
         // An encoder that scatters widely is a weaker witness of front and back too.
         let encoder_agrees = wrap(encoder_yaw - x[0]).abs() < FRAC_PI_2;
-        let vote = ENCODER_VOTE * (self.measurement_var / self.innovation_power.max(self.measurement_var));
+        let vote = ENCODER_VOTE * (self.measurement_var / self.encoder_variance());
         sense += if encoder_agrees { vote } else { -vote };
         if let Some((m, _)) = motion {
             sense += if wrap(m - x[0]).abs() < FRAC_PI_2 {
@@ -210,11 +219,10 @@ impl HeadingFilter {
         sense = sense.min(self.max_sense);
 
         // Measurements: the encoder's axis, then the motion's direction (when it agrees on sense).
-        // The encoder's noise: as configured, or wider when its recent innovations say so (an
+        // The encoder's noise: as configured, or wider when it jitters more from frame to frame (an
         // encoder that cannot tell this body's heading scatters over all angles).
         let axial = wrap_axial(encoder_yaw - x[0]);
-        self.innovation_power += INNOVATION_WEIGHT * (axial * axial - self.innovation_power);
-        let encoder_var = self.measurement_var.max(self.innovation_power - p[0][0]);
+        let encoder_var = self.encoder_variance();
         Self::correct(&mut x, &mut p, axial, encoder_var);
         if let Some((m, variance)) = motion {
             let innovation = wrap(m - x[0]);
@@ -225,6 +233,11 @@ impl HeadingFilter {
         let state = (x, p, sense);
         self.state = Some(state);
         self.heading(state, motion.map(|(m, _)| m), turned_round)
+    }
+
+    /// The encoder's noise variance now: the configured one, or half its recent jitter if larger.
+    fn encoder_variance(&self) -> f64 {
+        self.measurement_var.max(self.jitter_power / 2.0)
     }
 
     /// Kalman update of the angle with a robustly weighted scalar innovation.

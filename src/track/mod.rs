@@ -109,7 +109,7 @@ impl Default for TrackSettings {
             nominal_rate_hz: 30.0,
             heading: HeadingMode::Tracker,
             heading_std_deg: 25.0,
-            heading_accel_std: 2.0,
+            heading_accel_std: 6.0,
             heading_from_motion: true,
             motion_window_s: 1.0,
             motion_min_speed_mps: 0.3,
