@@ -48,3 +48,17 @@ pub struct Frame {
     pub unit: Unit,
     pub cloud: PointCloud,
 }
+
+/// Farthest a measured point can plausibly be (metres): no range sensor reports beyond this. A
+/// coordinate past it (or not finite) comes from a corrupt or hostile input, and one such point
+/// would set a bounding box or an outlier statistic for the whole frame.
+pub const MAX_COORDINATE_M: f32 = 1.0e5;
+
+/// Drops the points with a non-finite coordinate or one beyond [`MAX_COORDINATE_M`] (coordinates
+/// in `unit`); returns how many were dropped.
+pub fn drop_implausible(points: &mut Vec<[f32; 3]>, unit: Unit) -> usize {
+    let limit = MAX_COORDINATE_M / unit.to_metres();
+    let before = points.len();
+    points.retain(|p| p.iter().all(|c| c.is_finite() && c.abs() <= limit));
+    before - points.len()
+}

@@ -268,7 +268,12 @@ fn run(command: Command) -> Result<()> {
                 config.prepare.seed = seed;
             }
             let bundle = Bundle::load(&config.model.bundle)?;
-            let read = read_cloud(&file, &FileOptions::default())?;
+            let mut read = read_cloud(&file, &FileOptions::default())?;
+            let unit = match unit {
+                UnitArg::Metre => Unit::Metre,
+                UnitArg::Millimetre => Unit::Millimetre,
+            };
+            read.dropped_non_finite += gdvae_node::cloud::drop_implausible(&mut read.cloud.points, unit);
             let points_read = read.cloud.len();
             let frame = Frame {
                 stream: "file".into(),
@@ -276,10 +281,7 @@ fn run(command: Command) -> Result<()> {
                 sensor_stamp_ns: None,
                 ingested: std::time::Instant::now(),
                 ingest_unix_ns: 0,
-                unit: match unit {
-                    UnitArg::Metre => Unit::Metre,
-                    UnitArg::Millimetre => Unit::Millimetre,
-                },
+                unit,
                 cloud: PointCloud {
                     points: read.cloud.points,
                 },
@@ -295,6 +297,9 @@ fn run(command: Command) -> Result<()> {
             let library = onnxruntime.or(config.model.onnxruntime.clone());
             let mut encoder = Encoder::load(&bundle, library.as_deref(), config.model.threads, config.model.spin)?;
             let encoding = encoder.encode(&[&prepared.points])?.remove(0);
+            if !encoding.is_finite() {
+                bail!("{}: the encoder's output is not finite", file.display());
+            }
             let out = serde_json::json!({
                 "file": file.display().to_string(),
                 "points_read": points_read,

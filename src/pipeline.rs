@@ -296,10 +296,10 @@ pub fn run(
                     Ok(()) => {}
                     Err(e) => {
                         counters.add_publish_error();
-                        log::error!(
-                            "publishing on stream '{stream}' failed ({} so far): {e}",
-                            counters.publish_errors()
-                        );
+                        let n = counters.publish_errors();
+                        if n <= 10 || n % 100 == 0 {
+                            log::error!("publishing on stream '{stream}' failed ({n} so far): {e}");
+                        }
                     }
                 }
                 if let Some(collect) = &options.collect {
@@ -313,7 +313,8 @@ pub fn run(
             subscribers.take();
         }
     }
-    publisher.flush()?;
+    // A sink that failed during the run fails the run, after the stages have wound down.
+    let flushed = publisher.flush();
     drop(presence);
     finished.store(true, Ordering::Relaxed);
     for (name, handle) in threads {
@@ -322,6 +323,7 @@ pub fn run(
         }
     }
     let _ = logger.join();
+    flushed?;
     let last_publish = Instant::now();
     Ok(RunSummary {
         wall: started.elapsed(),

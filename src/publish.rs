@@ -31,6 +31,10 @@ pub struct Publisher {
     congestion: CongestionControl,
     publishers: HashMap<String, zenoh::pubsub::Publisher<'static>>,
     jsonl: Option<Box<dyn Write + Send>>,
+    jsonl_path: String,
+    /// Set when the JSON-lines sink failed: it is closed, the other outputs go on, and the run
+    /// reports the failure at the end (`flush`).
+    jsonl_failed: Option<std::io::Error>,
 }
 
 impl Publisher {
@@ -44,7 +48,8 @@ impl Publisher {
                     path: path.to_string(),
                     source,
                 })?;
-                Some(Box::new(std::io::BufWriter::new(file)))
+                // Line by line, so that whoever tails the file sees each state when it is published.
+                Some(Box::new(std::io::LineWriter::new(file)))
             }
         };
         Ok(Self {
@@ -58,6 +63,8 @@ impl Publisher {
             },
             publishers: HashMap::new(),
             jsonl,
+            jsonl_path: config.publish.jsonl.clone().unwrap_or_default(),
+            jsonl_failed: None,
         })
     }
 
@@ -85,12 +92,20 @@ impl Publisher {
     fn send<T: serde::Serialize>(&mut self, stream: &str, kind: &str, message: &T) -> Result<(), PublishError> {
         if let Some(sink) = self.jsonl.as_mut() {
             let line = serde_json::to_string(message).map_err(|e| PublishError::Encode(e.to_string()))?;
-            writeln!(sink, "{line}").map_err(|source| PublishError::Sink {
-                path: "jsonl".into(),
-                source,
-            })?;
+            if let Err(source) = writeln!(sink, "{line}") {
+                self.close_jsonl(source);
+            }
         }
-        let Some(session) = &self.session else { return Ok(()) };
+        let Some(session) = &self.session else {
+            // With no other output, a message the failed sink could not take is lost: say so.
+            return match &self.jsonl_failed {
+                Some(e) => Err(PublishError::Sink {
+                    path: self.jsonl_path.clone(),
+                    source: std::io::Error::new(e.kind(), e.to_string()),
+                }),
+                None => Ok(()),
+            };
+        };
         let key = format!("{}/{stream}/{kind}", self.prefix);
         if !self.publishers.contains_key(&key) {
             let encoding = match self.format {
@@ -112,14 +127,35 @@ impl Publisher {
             .map_err(|e| PublishError::Zenoh(e.to_string()))
     }
 
+    /// Closes a failed JSON-lines sink, once, with one error in the log.
+    fn close_jsonl(&mut self, source: std::io::Error) {
+        log::error!(
+            "JSON lines sink {}: {source}; closed, {}",
+            self.jsonl_path,
+            if self.session.is_some() {
+                "zenoh publishing goes on"
+            } else {
+                "nothing else publishes: the run will fail"
+            }
+        );
+        self.jsonl = None;
+        self.jsonl_failed = Some(source);
+    }
+
+    /// Flushes the JSON-lines sink; an error if it failed at any time during the run.
     pub fn flush(&mut self) -> Result<(), PublishError> {
         if let Some(sink) = self.jsonl.as_mut() {
-            sink.flush().map_err(|source| PublishError::Sink {
-                path: "jsonl".into(),
-                source,
-            })?;
+            if let Err(source) = sink.flush() {
+                self.close_jsonl(source);
+            }
         }
-        Ok(())
+        match self.jsonl_failed.take() {
+            Some(source) => Err(PublishError::Sink {
+                path: self.jsonl_path.clone(),
+                source,
+            }),
+            None => Ok(()),
+        }
     }
 }
 

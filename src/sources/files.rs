@@ -87,6 +87,10 @@ pub fn read_cloud(path: &Path, options: &FileOptions) -> Result<FileCloud, FileE
         }
         sample_surface(&finite, &faces, options.mesh_samples, options.seed).map_err(invalid)?
     };
+    // Narrowing to f32 turns coordinates beyond f32's range into infinities, and a mesh with
+    // huge vertices samples to infinities or NaN: what is left is counted with the rest.
+    let mut cloud: Vec<[f32; 3]> = cloud;
+    let dropped_non_finite = dropped_non_finite + drop_non_finite(&mut cloud);
     if cloud.is_empty() {
         return Err(invalid("no points".into()));
     }
@@ -94,6 +98,12 @@ pub fn read_cloud(path: &Path, options: &FileOptions) -> Result<FileCloud, FileE
         cloud: PointCloud { points: cloud },
         dropped_non_finite,
     })
+}
+
+fn drop_non_finite(points: &mut Vec<[f32; 3]>) -> usize {
+    let before = points.len();
+    points.retain(|p| p.iter().all(|c| c.is_finite()));
+    before - points.len()
 }
 
 type Parsed = (Vec<[f64; 3]>, Vec<[usize; 3]>);
@@ -276,7 +286,13 @@ fn read_obj(path: &Path, options: &FileOptions) -> Result<Parsed, String> {
         ignore_points: true,
         ignore_lines: true,
     };
-    let (models, _) = tobj::load_obj(path, &load).map_err(|e| format!("not a valid OBJ file: {e}"))?;
+    // Vertices and faces only: a material library the file names is never opened (it could name
+    // any path, a device or a FIFO).
+    let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
+    let (models, _) = tobj::load_obj_buf(&mut BufReader::new(file), &load, |_| {
+        Err(tobj::LoadError::OpenFileFailed)
+    })
+    .map_err(|e| format!("not a valid OBJ file: {e}"))?;
     if models.iter().all(|m| m.mesh.indices.is_empty()) {
         // No faces: tobj keeps no vertices then, so read the `v` lines as a point cloud.
         return read_obj_vertices(path, options).map(|points| (points, Vec::new()));
@@ -428,8 +444,9 @@ pub fn run(settings: &crate::config::SourceSettings, mut outlet: super::Outlet) 
                 return Ok(());
             }
             if let Some(period) = period {
-                let due = started + period * sent;
-                std::thread::sleep(due.saturating_duration_since(std::time::Instant::now()));
+                if !outlet.wait_until(started + period * sent) {
+                    return Ok(());
+                }
             }
             sent = sent.saturating_add(1);
             let open = match read_cloud(file, &options) {

@@ -220,7 +220,9 @@ pub fn run(settings: &SourceSettings, mut outlet: Outlet) -> Result<(), McapSour
                     let (start, first) = *clock.get_or_insert((Instant::now(), message.log_time));
                     let offset = message.log_time.saturating_sub(first) as f64 / settings.speed;
                     let due = start + Duration::from_nanos(offset as u64);
-                    std::thread::sleep(due.saturating_duration_since(Instant::now()));
+                    if !outlet.wait_until(due) {
+                        return Ok(());
+                    }
                 }
                 let open = match decoded {
                     Ok((stamp, points, dropped)) => outlet.frame(PointCloud { points }, unit, Some(stamp), dropped),

@@ -117,14 +117,33 @@ impl Outlet {
         self.stop.load(Ordering::Relaxed)
     }
 
-    /// Sends a decoded frame. Returns false when the pipeline has shut down.
+    /// Waits until `due` (a paced replay's next frame) in short slices, so that a stop request is
+    /// seen within 50 ms however long the gap in the recording. Returns false if stopping.
+    pub fn wait_until(&self, due: Instant) -> bool {
+        const SLICE: std::time::Duration = std::time::Duration::from_millis(50);
+        loop {
+            if self.stopping() {
+                return false;
+            }
+            let left = due.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return true;
+            }
+            std::thread::sleep(left.min(SLICE));
+        }
+    }
+
+    /// Sends a decoded frame. Returns false when the pipeline has shut down. Points that are not
+    /// finite or lie implausibly far are dropped here, for every source, and counted with those the
+    /// decoder already dropped (`dropped_non_finite`).
     pub fn frame(
         &mut self,
-        cloud: PointCloud,
+        mut cloud: PointCloud,
         unit: Unit,
         sensor_stamp_ns: Option<u64>,
         dropped_non_finite: usize,
     ) -> bool {
+        let dropped_non_finite = dropped_non_finite + crate::cloud::drop_implausible(&mut cloud.points, unit);
         let frame = Frame {
             stream: self.stream.clone(),
             sequence: self.next_sequence(),

@@ -269,10 +269,12 @@ pub fn decode_camera_info(payload: &[u8]) -> Result<(Header, CameraIntrinsics), 
         cx: k[2],
         cy: k[5],
     };
-    if !(intrinsics.fx > 0.0 && intrinsics.fy > 0.0 && intrinsics.fx.is_finite() && intrinsics.fy.is_finite()) {
+    if !(intrinsics.fx > 0.0 && intrinsics.fy > 0.0 && intrinsics.fx.is_finite() && intrinsics.fy.is_finite())
+        || !(intrinsics.cx.is_finite() && intrinsics.cy.is_finite())
+    {
         return Err(CdrError::Invalid(format!(
-            "camera matrix has fx = {}, fy = {}",
-            k[0], k[4]
+            "camera matrix has fx = {}, fy = {}, cx = {}, cy = {}",
+            k[0], k[4], k[2], k[5]
         )));
     }
     Ok((header, intrinsics))
@@ -303,6 +305,11 @@ pub fn decode_depth_image(
             )))
         }
     };
+    if width == 0 || height == 0 || row_step == 0 {
+        return Err(CdrError::Invalid(format!(
+            "empty image: {width} x {height}, row step {row_step}"
+        )));
+    }
     if width.saturating_mul(height) > max_points.saturating_mul(step.max(1) * step.max(1)) {
         return Err(CdrError::Invalid(format!("{width} x {height} image is too large")));
     }

@@ -4,6 +4,7 @@ mod config;
 mod evaluate;
 mod files;
 mod helpers;
+mod hostile;
 mod inputs;
 mod model;
 mod pipeline;
