@@ -191,19 +191,29 @@ pub fn run(
     let (done_tx, done_rx) = bounded::<Ticketed<Done>>(queue * 2);
     let (publish_tx, publish_rx) = bounded::<(Output, Instant, Instant)>(queue);
     let queues = Arc::new(Queues {
-        channels: vec![
+        channels: std::sync::Mutex::new(vec![
             ("prepare", depth_of(&prepare_rx)),
             ("batch", depth_of(&work_rx)),
             ("encode", depth_of(&batch_rx)),
             ("track", depth_of(&done_rx)),
             ("publish", depth_of(&publish_rx)),
-        ],
+        ]),
     });
+    let failed: Arc<std::sync::Mutex<Vec<String>>> = Arc::default();
 
     let spawn = |name: String, body: Box<dyn FnOnce() + Send>| {
+        let guard = StageGuard {
+            name: name.clone(),
+            stop: stop.clone(),
+            queues: queues.clone(),
+            failed: failed.clone(),
+        };
         std::thread::Builder::new()
             .name(name.clone())
-            .spawn(body)
+            .spawn(move || {
+                let _guard = guard;
+                body()
+            })
             .map(|h| (name, h))
             .map_err(|e| PipelineError::Thread(e.to_string()))
     };
@@ -323,6 +333,13 @@ pub fn run(
         }
     }
     let _ = logger.join();
+    let failed = std::mem::take(&mut *failed.lock().unwrap_or_else(|e| e.into_inner()));
+    if !failed.is_empty() {
+        return Err(PipelineError::Thread(format!(
+            "stage thread(s) {} died; what they held was lost",
+            failed.join(", ")
+        )));
+    }
     flushed?;
     let last_publish = Instant::now();
     Ok(RunSummary {
@@ -340,13 +357,63 @@ fn depth_of<T: Send + 'static>(receiver: &Receiver<T>) -> Depth {
     Box::new(move || receiver.len())
 }
 
+/// The queue-depth observers of the status reply. Each holds a receiver of its channel, which
+/// would keep the channel open after its stage died: `release` drops them all.
 struct Queues {
-    channels: Vec<(&'static str, Depth)>,
+    channels: std::sync::Mutex<Vec<(&'static str, Depth)>>,
 }
 
 impl Queues {
     fn depths(&self) -> BTreeMap<&'static str, usize> {
-        self.channels.iter().map(|(name, len)| (*name, len())).collect()
+        let channels = self.channels.lock().unwrap_or_else(|e| e.into_inner());
+        channels.iter().map(|(name, len)| (*name, len())).collect()
+    }
+
+    fn release(&self) {
+        self.channels.lock().unwrap_or_else(|e| e.into_inner()).clear();
+    }
+}
+
+/// The message of a caught panic.
+fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "unknown panic".into())
+}
+
+/// Runs one frame's work; a panic in it becomes an error naming the stage (the stage goes on
+/// with the next frame, and the frame is a counted rejection).
+fn contained<T>(stage: &str, work: impl FnOnce() -> T) -> Result<T, String> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(work)).map_err(|payload| {
+        let message = format!("internal error in {stage}: {}", panic_message(payload.as_ref()));
+        log::error!("{message}");
+        message
+    })
+}
+
+/// Held by every stage thread: if the thread dies by a panic that per-frame containment did not
+/// catch, the run is stopped (sources end, every stage drains) and the queue observers let go of
+/// their channels, so no stage waits for ever on a channel only they kept open.
+struct StageGuard {
+    name: String,
+    stop: Arc<AtomicBool>,
+    queues: Arc<Queues>,
+    failed: Arc<std::sync::Mutex<Vec<String>>>,
+}
+
+impl Drop for StageGuard {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            log::error!("stage thread {} died; stopping the node", self.name);
+            self.failed
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .push(self.name.clone());
+            self.stop.store(true, Ordering::SeqCst);
+            self.queues.release();
+        }
     }
 }
 
@@ -420,17 +487,18 @@ fn prepare(rx: Receiver<Ticketed<Ingest>>, tx: Sender<Ticketed<Work>>, preparer:
             Ingest::Rejected(r) => Work::Rejected(r),
             Ingest::Frame(frame) => {
                 let start = Instant::now();
-                let result = preparer.prepare(&frame);
+                let result = contained("prepare", || preparer.prepare(&frame));
                 let prepare_ms = ms_since(start);
                 stats.record("prepare", prepare_ms);
                 match result {
-                    Ok(prepared) => Work::Frame(PreparedFrame {
+                    Err(message) => Work::Rejected(origin_of(&frame).reject("prepare", message)),
+                    Ok(Ok(prepared)) => Work::Frame(PreparedFrame {
                         origin: origin_of(&frame),
                         prepared,
                         prepare_ms,
                         prepared_at: Instant::now(),
                     }),
-                    Err(e) => Work::Rejected(
+                    Ok(Err(e)) => Work::Rejected(
                         origin_of(&frame).reject("prepare", format!("{} points received: {e}", frame.cloud.len())),
                     ),
                 }
@@ -499,7 +567,7 @@ fn encode(rx: Receiver<Vec<Ticketed<PreparedFrame>>>, tx: Sender<Ticketed<Done>>
     for batch in rx {
         let start = Instant::now();
         let clouds: Vec<&[[f32; 3]]> = batch.iter().map(|(_, f)| f.prepared.points.as_slice()).collect();
-        let result = encoder.encode(&clouds);
+        let result = contained("encode", || encoder.encode(&clouds)).and_then(|r| r.map_err(|e| e.to_string()));
         let encode_ms = ms_since(start);
         stats.record("encode", encode_ms);
         match result {
@@ -531,7 +599,7 @@ fn encode(rx: Receiver<Vec<Ticketed<PreparedFrame>>>, tx: Sender<Ticketed<Done>>
             }
             Err(e) => {
                 for (ticket, frame) in batch {
-                    let rejection = frame.origin.reject("encode", e.to_string());
+                    let rejection = frame.origin.reject("encode", e.clone());
                     if tx.send((ticket, Done::Rejected(rejection))).is_err() {
                         return;
                     }
@@ -607,7 +675,28 @@ fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant, Instant)>, c
                     if frame.origin.sensor_stamp_ns.is_some() {
                         tracker.last_stamp_ns = frame.origin.sensor_stamp_ns;
                     }
-                    Output::State(Box::new(state_of(&node, &frame, &mut tracker.tracker, dt)))
+                    match contained("track", || state_of(&node, &frame, &mut tracker.tracker, dt)) {
+                        Ok(state) => Output::State(Box::new(state)),
+                        Err(message) => {
+                            // The stream's filters may be half updated: start them afresh.
+                            tracker.tracker = StreamTracker::new(settings);
+                            stats.stream(&frame.origin.stream).add_rejected("track");
+                            let r = frame.origin.reject("track", message);
+                            Output::Rejected(state::Rejected {
+                                schema: state::REJECTED_SCHEMA.into(),
+                                node: node.clone(),
+                                stream: r.stream,
+                                sequence: r.sequence,
+                                stage: r.stage.into(),
+                                reason: r.reason,
+                                stamps: state::Stamps {
+                                    sensor_ns: r.sensor_stamp_ns,
+                                    ingest_ns: r.ingest_unix_ns,
+                                    publish_ns: 0,
+                                },
+                            })
+                        }
+                    }
                 }
             };
             stats.record("track", ms_since(start));
@@ -775,5 +864,76 @@ fn summary_logger(finished: &AtomicBool, stats: &Stats, seconds: f64) {
             e2e.map(|l| l.p99_ms).unwrap_or(0.0),
             s.mean_batch
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    //! The panic containment on its own: a frame's panic is an error, a dying stage thread stops the
+    //! run and lets go of the channels the status observers held.
+
+    use super::*;
+
+    #[test]
+    fn a_panic_in_a_frame_is_an_error_naming_the_stage() {
+        assert_eq!(contained("prepare", || 7), Ok(7));
+        let error = contained("prepare", || -> u32 { panic!("index out of bounds") }).unwrap_err();
+        assert_eq!(error, "internal error in prepare: index out of bounds");
+        let error = contained("encode", || -> u32 { panic!("{} points", 3) }).unwrap_err();
+        assert_eq!(error, "internal error in encode: 3 points");
+    }
+
+    #[test]
+    fn a_dying_stage_stops_the_run_and_releases_the_observed_channels() {
+        let (tx, rx) = bounded::<u32>(1);
+        let queues = Arc::new(Queues {
+            channels: std::sync::Mutex::new(vec![("work", depth_of(&rx))]),
+        });
+        let stop = Arc::new(AtomicBool::new(false));
+        let failed: Arc<std::sync::Mutex<Vec<String>>> = Arc::default();
+        tx.send(1).unwrap();
+        assert_eq!(queues.depths()["work"], 1);
+        // The stage that reads the channel dies outside any frame's containment.
+        let guard = StageGuard {
+            name: "prepare:0".into(),
+            stop: stop.clone(),
+            queues: queues.clone(),
+            failed: failed.clone(),
+        };
+        let handle = std::thread::spawn(move || {
+            let _guard = guard;
+            let _rx = rx;
+            panic!("a bug outside the per-frame work");
+        });
+        assert!(handle.join().is_err());
+        assert!(stop.load(Ordering::SeqCst), "the run is told to stop");
+        assert_eq!(*failed.lock().unwrap(), vec!["prepare:0".to_string()]);
+        assert!(queues.depths().is_empty(), "the observers let go");
+        // Nobody holds a receiver any more: the upstream stage sees the channel closed instead of
+        // blocking for ever on a full queue.
+        assert!(tx
+            .send_timeout(2, Duration::from_secs(1))
+            .unwrap_err()
+            .is_disconnected());
+    }
+
+    #[test]
+    fn a_stage_that_ends_normally_leaves_everything_as_it_was() {
+        let (_tx, rx) = bounded::<u32>(1);
+        let queues = Arc::new(Queues {
+            channels: std::sync::Mutex::new(vec![("work", depth_of(&rx))]),
+        });
+        let stop = Arc::new(AtomicBool::new(false));
+        let failed: Arc<std::sync::Mutex<Vec<String>>> = Arc::default();
+        let guard = StageGuard {
+            name: "batcher".into(),
+            stop: stop.clone(),
+            queues: queues.clone(),
+            failed: failed.clone(),
+        };
+        std::thread::spawn(move || drop(guard)).join().unwrap();
+        assert!(!stop.load(Ordering::SeqCst));
+        assert!(failed.lock().unwrap().is_empty());
+        assert_eq!(queues.depths().len(), 1);
     }
 }
