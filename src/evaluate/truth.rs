@@ -89,7 +89,16 @@ pub fn read_truth(path: &Path) -> Result<Vec<TruthFrame>, TruthError> {
             path: file.clone(),
             source,
         })?;
-        let stream = mcap::MessageStream::new(&mapped).map_err(|e| TruthError::Format {
+        // The same bounded reading as the replay: only the sound prefix reaches the mcap crate.
+        let scanned = crate::sources::mcap::scan(&mapped).map_err(|message| TruthError::Format {
+            path: file.clone(),
+            message,
+        })?;
+        let stream = mcap::MessageStream::new_with_options(
+            &mapped[..scanned.sound_bytes],
+            mcap::read::Options::IgnoreEndMagic.into(),
+        )
+        .map_err(|e| TruthError::Format {
             path: file.clone(),
             message: e.to_string(),
         })?;

@@ -44,26 +44,223 @@ pub fn recording_files(path: &Path) -> Result<Vec<PathBuf>, McapSourceError> {
     Ok(files)
 }
 
-/// What a recording holds for the node: its topics and their schema names.
-pub fn topics(bytes: &[u8], path: &Path) -> Result<Vec<(String, String)>, McapSourceError> {
-    let format = |e: mcap::McapError| McapSourceError::Format {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    };
-    let mut found: Vec<(String, String)> = Vec::new();
-    if let Some(summary) = mcap::Summary::read(bytes).map_err(format)? {
-        let mut channels: Vec<_> = summary.channels.values().collect();
-        channels.sort_by_key(|c| c.id);
-        for c in channels {
-            found.push((
-                c.topic.clone(),
-                c.schema.as_ref().map(|s| s.name.clone()).unwrap_or_default(),
-            ));
-        }
-        return Ok(found);
+/// Largest chunk the reader will decompress (bytes). A chunk's header says how large it is
+/// uncompressed; a hostile or corrupt header would otherwise make the reader allocate whatever it
+/// claims. 512 MiB holds any frame `max_points` allows at its default (4 M points x 32 bytes)
+/// four times over.
+pub const MAX_CHUNK_BYTES: u64 = 512 << 20;
+
+const MAGIC: &[u8] = b"\x89MCAP0\r\n";
+const OP_SCHEMA: u8 = 0x03;
+const OP_CHANNEL: u8 = 0x04;
+const OP_CHUNK: u8 = 0x06;
+const OP_DATA_END: u8 = 0x0F;
+
+/// What a walk over a recording's top-level records found, before anything is decompressed.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Scan {
+    /// Bytes from the start that are whole, sound records: what the replay reads.
+    pub sound_bytes: usize,
+    /// Why the rest is not read (a truncated record, a chunk that claims more than the limits);
+    /// None when the file is whole up to its data end.
+    pub damage: Option<String>,
+    /// Topics and schema names from the top-level (summary) channel records.
+    pub topics: Vec<(String, String)>,
+}
+
+/// Walks the top-level records of an MCAP file (opcode, u64 length, content) checking every
+/// length against the bytes that exist and every chunk's declared sizes against
+/// [`MAX_CHUNK_BYTES`], without decompressing anything. The mcap crate's streaming reader is then
+/// given only the sound prefix, so no header it reads can claim more than is there.
+pub fn scan(bytes: &[u8]) -> Result<Scan, String> {
+    if bytes.len() < MAGIC.len() || &bytes[..MAGIC.len()] != MAGIC {
+        return Err("not an MCAP file (no MCAP magic at the start)".into());
     }
-    // No summary section (e.g. a recording cut short): scan the messages.
-    for message in mcap::MessageStream::new(bytes).map_err(format)? {
+    let mut scan = Scan::default();
+    let mut schemas: std::collections::HashMap<u16, String> = Default::default();
+    let mut channels: Vec<(u16, String)> = Vec::new();
+    let mut offset = MAGIC.len();
+    loop {
+        scan.sound_bytes = offset;
+        let rest = &bytes[offset..];
+        if rest.is_empty() {
+            scan.damage = Some(format!(
+                "the file ends at byte {offset} without a data end record (cut short?)"
+            ));
+            break;
+        }
+        if rest.len() < 9 {
+            scan.damage = Some(format!("a record header at byte {offset} is cut short"));
+            break;
+        }
+        let opcode = rest[0];
+        let length = u64::from_le_bytes(rest[1..9].try_into().expect("8 bytes"));
+        if length > (rest.len() - 9) as u64 {
+            scan.damage = Some(format!(
+                "the record at byte {offset} claims {length} bytes; {} remain (cut short or corrupt)",
+                rest.len() - 9
+            ));
+            // A chunk cut short (a plausible length, a sound header) still holds whole messages:
+            // the streaming reader decompresses what is there and stops at the end of the bytes.
+            // A length beyond any chunk's is corruption, not a cut.
+            if opcode == OP_CHUNK && length <= MAX_CHUNK_BYTES && check_chunk_header(&rest[9..]).is_ok() {
+                scan.sound_bytes = bytes.len();
+            }
+            break;
+        }
+        let content = &rest[9..9 + length as usize];
+        match opcode {
+            OP_CHUNK => {
+                if let Err(reason) = check_chunk(content) {
+                    scan.damage = Some(format!("the chunk at byte {offset}: {reason}"));
+                    break;
+                }
+            }
+            OP_SCHEMA => {
+                if let Some((id, name)) = read_schema(content) {
+                    schemas.insert(id, name);
+                }
+            }
+            OP_CHANNEL => {
+                if let Some(channel) = read_channel(content) {
+                    channels.push(channel);
+                }
+            }
+            OP_DATA_END => {
+                scan.sound_bytes = offset + 9 + length as usize;
+                // The summary follows: read on for its channel records, which name the topics.
+                let mut at = scan.sound_bytes;
+                while bytes.len() - at >= 9 {
+                    let op = bytes[at];
+                    let len = u64::from_le_bytes(bytes[at + 1..at + 9].try_into().expect("8 bytes"));
+                    if len > (bytes.len() - at - 9) as u64 {
+                        break;
+                    }
+                    let content = &bytes[at + 9..at + 9 + len as usize];
+                    match op {
+                        OP_SCHEMA => {
+                            if let Some((id, name)) = read_schema(content) {
+                                schemas.insert(id, name);
+                            }
+                        }
+                        OP_CHANNEL => {
+                            if let Some(channel) = read_channel(content) {
+                                channels.push(channel);
+                            }
+                        }
+                        _ => {}
+                    }
+                    at += 9 + len as usize;
+                }
+                break;
+            }
+            _ => {}
+        }
+        offset += 9 + length as usize;
+    }
+    let mut seen = std::collections::HashSet::new();
+    for (schema_id, topic) in channels {
+        if seen.insert(topic.clone()) {
+            scan.topics
+                .push((topic, schemas.get(&schema_id).cloned().unwrap_or_default()));
+        }
+    }
+    Ok(scan)
+}
+
+/// A chunk's header (start and end time, uncompressed size and CRC, compression, records
+/// length): its sizes within the limits and a compression the reader knows. Returns the
+/// uncompressed size, the compression, the records length and where the records start.
+fn check_chunk_header(content: &[u8]) -> Result<(u64, String, u64, usize), String> {
+    let mut at = 16; // message start and end times
+    let uncompressed = read_u64(content, &mut at).ok_or("header cut short")?;
+    at += 4; // uncompressed CRC
+    let compression = read_string(content, &mut at).ok_or("compression name cut short")?;
+    let records = read_u64(content, &mut at).ok_or("header cut short")?;
+    if uncompressed > MAX_CHUNK_BYTES {
+        return Err(format!(
+            "it claims {uncompressed} bytes uncompressed; at most {MAX_CHUNK_BYTES} are read"
+        ));
+    }
+    match compression.as_str() {
+        "" | "zstd" | "lz4" => Ok((uncompressed, compression, records, at)),
+        other => Err(format!("unknown compression '{other}'")),
+    }
+}
+
+/// A whole chunk: a sound header whose records length fits in the chunk.
+fn check_chunk(content: &[u8]) -> Result<(), String> {
+    let (uncompressed, compression, records, at) = check_chunk_header(content)?;
+    if records > (content.len().saturating_sub(at)) as u64 {
+        return Err(format!(
+            "its records claim {records} bytes; the chunk holds {}",
+            content.len() - at
+        ));
+    }
+    if compression.is_empty() && uncompressed != records {
+        return Err(format!(
+            "uncompressed, its records are {records} bytes but it claims {uncompressed}"
+        ));
+    }
+    Ok(())
+}
+
+fn read_u16(bytes: &[u8], at: &mut usize) -> Option<u16> {
+    let value = u16::from_le_bytes(bytes.get(*at..*at + 2)?.try_into().ok()?);
+    *at += 2;
+    Some(value)
+}
+
+fn read_u32(bytes: &[u8], at: &mut usize) -> Option<u32> {
+    let value = u32::from_le_bytes(bytes.get(*at..*at + 4)?.try_into().ok()?);
+    *at += 4;
+    Some(value)
+}
+
+fn read_u64(bytes: &[u8], at: &mut usize) -> Option<u64> {
+    let value = u64::from_le_bytes(bytes.get(*at..*at + 8)?.try_into().ok()?);
+    *at += 8;
+    Some(value)
+}
+
+fn read_string(bytes: &[u8], at: &mut usize) -> Option<String> {
+    let length = read_u32(bytes, at)? as usize;
+    let text = bytes.get(*at..at.checked_add(length)?)?;
+    *at += length;
+    Some(String::from_utf8_lossy(text).into_owned())
+}
+
+fn read_schema(content: &[u8]) -> Option<(u16, String)> {
+    let mut at = 0;
+    let id = read_u16(content, &mut at)?;
+    Some((id, read_string(content, &mut at)?))
+}
+
+fn read_channel(content: &[u8]) -> Option<(u16, String)> {
+    let mut at = 2; // channel id
+    let schema_id = read_u16(content, &mut at)?;
+    Some((schema_id, read_string(content, &mut at)?))
+}
+
+/// What a recording holds for the node: its topics and their schema names. From the summary's
+/// channel records when there are some; otherwise (a file cut short has no summary) from the
+/// channels of the messages in its sound prefix.
+pub fn topics(bytes: &[u8], path: &Path) -> Result<Vec<(String, String)>, McapSourceError> {
+    let format = |message: String| McapSourceError::Format {
+        path: path.to_path_buf(),
+        message,
+    };
+    let scanned = scan(bytes).map_err(format)?;
+    if !scanned.topics.is_empty() {
+        return Ok(scanned.topics);
+    }
+    let mut found: Vec<(String, String)> = Vec::new();
+    let stream = mcap::MessageStream::new_with_options(
+        &bytes[..scanned.sound_bytes],
+        mcap::read::Options::IgnoreEndMagic.into(),
+    )
+    .map_err(|e| format(e.to_string()))?;
+    for message in stream {
         let Ok(message) = message else { break };
         let topic = message.channel.topic.clone();
         if !found.iter().any(|(t, _)| *t == topic) {
@@ -154,10 +351,20 @@ pub fn run(settings: &SourceSettings, mut outlet: Outlet) -> Result<(), McapSour
             })?;
             let bytes: &[u8] = &mapped;
             let wanted = choose_topic(settings, &topics(bytes, file)?, file)?;
-            let stream = mcap::MessageStream::new(bytes).map_err(|e| McapSourceError::Format {
+            // Only the sound prefix goes to the mcap crate; what lies beyond is one rejection.
+            let scanned = scan(bytes).map_err(|message| McapSourceError::Format {
+                path: file.clone(),
+                message,
+            })?;
+            let stream = mcap::MessageStream::new_with_options(
+                &bytes[..scanned.sound_bytes],
+                mcap::read::Options::IgnoreEndMagic.into(),
+            )
+            .map_err(|e| McapSourceError::Format {
                 path: file.clone(),
                 message: e.to_string(),
             })?;
+            let mut unreadable = false;
             let mut intrinsics: Option<Arc<CameraIntrinsics>> = None;
             let mut waiting: Option<Vec<u8>> = None;
             for message in stream {
@@ -172,6 +379,7 @@ pub fn run(settings: &SourceSettings, mut outlet: Outlet) -> Result<(), McapSour
                             format!("{}: unreadable record, rest of file skipped: {e}", file.display()),
                             None,
                         );
+                        unreadable = true;
                         break;
                     }
                 };
@@ -232,6 +440,12 @@ pub fn run(settings: &SourceSettings, mut outlet: Outlet) -> Result<(), McapSour
                     ),
                 };
                 if !open {
+                    return Ok(());
+                }
+            }
+            if let (false, Some(damage)) = (unreadable, &scanned.damage) {
+                // The messages before the damage were replayed; the rest is one rejection.
+                if !outlet.reject(format!("{}: rest of file skipped: {damage}", file.display()), None) {
                     return Ok(());
                 }
             }

@@ -297,3 +297,108 @@ fn sigterm_is_obeyed_while_a_paced_replay_waits_out_a_long_gap() {
         "the frame taken in was published; the one ten minutes later was not due"
     );
 }
+
+/// The top-level records of an MCAP file: (offset, opcode, length).
+fn records(bytes: &[u8]) -> Vec<(usize, u8, u64)> {
+    let mut out = Vec::new();
+    let mut at = 8;
+    while at + 9 <= bytes.len() {
+        let length = u64::from_le_bytes(bytes[at + 1..at + 9].try_into().unwrap());
+        out.push((at, bytes[at], length));
+        at += 9 + length as usize;
+    }
+    out
+}
+
+/// Replays `path` as fast as possible; (published, rejected, rejection reasons).
+fn replay_counts(path: &Path) -> (u64, u64, String) {
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
+        .current_dir(repo())
+        .args(["replay", "--no-baseline", "--json", "--config", "config/replay.toml"])
+        .arg(path)
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let stream = path.file_stem().unwrap().to_str().unwrap();
+    let counters = &report["counters"]["streams"][stream];
+    let rejected: u64 = counters["rejected"]
+        .as_object()
+        .map(|m| m.values().filter_map(|v| v.as_u64()).sum())
+        .unwrap_or(0);
+    (
+        counters["published"].as_u64().unwrap(),
+        rejected,
+        String::from_utf8_lossy(&output.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn the_sample_scans_whole_with_its_topics() {
+    let bytes = std::fs::read(sample_recording()).unwrap();
+    let scan = gdvae_node::sources::mcap::scan(&bytes).unwrap();
+    assert_eq!(scan.damage, None);
+    assert!(scan.sound_bytes < bytes.len(), "the summary follows the data end");
+    assert!(scan
+        .topics
+        .contains(&("/camera/depth/points".into(), "sensor_msgs/msg/PointCloud2".into())));
+    assert!(scan.topics.iter().any(|(t, _)| t == "/sim/ground_truth"));
+}
+
+#[test]
+fn a_recording_cut_short_replays_its_whole_chunks_and_counts_the_rest_once() {
+    // Issue 13 item 4 / issue 14: an MCAP without its end was refused whole.
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = std::fs::read(sample_recording()).unwrap();
+    let cut = &bytes[..bytes.len() * 6 / 10];
+    let path = dir.path().join("cut.mcap");
+    std::fs::write(&path, cut).unwrap();
+    // What the mcap crate alone reads of it before its first error: the expected frames.
+    let mut expected = 0;
+    for message in mcap::MessageStream::new_with_options(cut, mcap::read::Options::IgnoreEndMagic.into()).unwrap() {
+        match message {
+            Ok(m) if m.channel.topic == "/camera/depth/points" => expected += 1,
+            Ok(_) => {}
+            Err(_) => break,
+        }
+    }
+    assert!(
+        expected > 10 && expected < 150,
+        "{expected} whole frames before the cut"
+    );
+    let (published, rejected, log) = replay_counts(&path);
+    assert_eq!(published, expected);
+    assert_eq!(rejected, 1, "the rest is one rejection: {log}");
+    assert!(log.contains("rest of file skipped"), "{log}");
+}
+
+#[test]
+fn chunks_and_records_that_claim_more_than_exists_are_refused_before_any_allocation() {
+    // Defects 3 and 7: a chunk's uncompressed size or a record's length is trusted by the mcap
+    // crate's streaming reader; near 2^64 it aborts the process or allocates without bound.
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = std::fs::read(sample_recording()).unwrap();
+    let chunks: Vec<usize> = records(&bytes)
+        .into_iter()
+        .filter(|(_, op, _)| *op == 0x06)
+        .map(|(at, _, _)| at)
+        .collect();
+    assert!(chunks.len() > 3);
+    // The first chunk holds the schemas and channels, the second the first frames.
+    let second = chunks[2];
+    // The uncompressed size sits after the opcode, the length and two u64 times.
+    let mut huge_chunk = bytes.clone();
+    huge_chunk[second + 9 + 16..second + 9 + 24].copy_from_slice(&(1u64 << 62).to_le_bytes());
+    let mut huge_record = bytes.clone();
+    huge_record[second + 1..second + 9].copy_from_slice(&(u64::MAX - 5).to_le_bytes());
+    for (name, hostile) in [("huge_chunk", huge_chunk), ("huge_record", huge_record)] {
+        let path = dir.path().join(format!("{name}.mcap"));
+        std::fs::write(&path, &hostile).unwrap();
+        let scan = gdvae_node::sources::mcap::scan(&hostile).unwrap();
+        assert_eq!(scan.sound_bytes, second, "{name}: sound up to the damaged chunk");
+        let (published, rejected, log) = replay_counts(&path);
+        assert!(published >= 1, "{name}: the frames of the chunks before it replay");
+        assert_eq!(rejected, 1, "{name}: {log}");
+        assert!(log.contains("claims"), "{name}: the reason names the claim: {log}");
+    }
+}
