@@ -1,5 +1,5 @@
 # The project's entry points. `make test` is what CI runs (.ci/run).
-.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking
+.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking fuzz
 
 VENV := .venv
 PYTHON := $(VENV)/bin/python
@@ -35,6 +35,18 @@ bench-tracking: onnxruntime node sim
 	bench/tracking.sh tune
 	bench/tracking.sh holdout
 	bench/tracking.sh final
+
+# Fuzz every decoder that takes outside bytes for FUZZ_SECONDS each (cargo-fuzz on the nightly
+# toolchain; installed here if missing). Not part of `make test`: findings become regression tests.
+FUZZ_SECONDS ?= 300
+FUZZ_TARGETS ?= mcap cdr files prepare
+fuzz: venv sim
+	cargo +nightly fuzz --version >/dev/null 2>&1 || cargo +nightly install cargo-fuzz --locked
+	fuzz/seed.sh
+	for target in $(FUZZ_TARGETS); do \
+		cargo +nightly fuzz run $$target -- -max_total_time=$(FUZZ_SECONDS) -rss_limit_mb=2048 \
+			-timeout=10 -print_final_stats=1 || exit 1; \
+	done
 
 # Build the simulator CLI (target/release/sim).
 sim:
