@@ -10,8 +10,9 @@ REQUIREMENTS := sim/requirements.txt models/pyproject.toml
 demo: onnxruntime node
 	./target/release/gdvae-node run --config config/default.toml --live-summary
 
-node:
-	cargo build --release -p gdvae-node
+# The node's binary, built exactly as the tests build it (same features, same profile), so that
+# `make demo` after `make test`, or the other way round, compiles nothing again.
+node: binaries
 
 # Build everything and run every test: Rust, then the Python checks against the built binaries.
 # The venv comes first: the node's tests load ONNX Runtime from its onnxruntime wheel.
@@ -48,9 +49,8 @@ fuzz: venv sim
 			-timeout=10 -print_final_stats=1 || exit 1; \
 	done
 
-# Build the simulator CLI (target/release/sim).
-sim:
-	cargo build --release -p gdvae-sim
+# The simulator CLI (target/release/sim), built as the tests build it.
+sim: binaries
 
 # ONNX Runtime for the node: the onnxruntime wheel's libonnxruntime.so, in .venv (never downloaded
 # at build or run time; the node finds it there, or at ORT_DYLIB_PATH).
