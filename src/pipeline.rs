@@ -281,6 +281,7 @@ pub fn run(
 
     // Publish on this thread. Zenoh subscriptions end when stop is set.
     let mut subscribers = Some(subscribers);
+    let mut connection = crate::publish::ConnectionWatch::new(config, session.as_ref());
     loop {
         match publish_rx.recv_timeout(Duration::from_millis(50)) {
             Ok((mut output, tracked_at, ingested)) => {
@@ -302,6 +303,9 @@ pub fn run(
                     Ok(()) if matches!(output, Output::State(_)) => {
                         stats.record("end_to_end", ms_since(ingested));
                         counters.add_published();
+                        if connection.as_mut().is_some_and(|c| !c.connected()) {
+                            counters.add_published_unconnected();
+                        }
                     }
                     Ok(()) => {}
                     Err(e) => {

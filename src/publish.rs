@@ -195,3 +195,52 @@ pub fn open_session(config: &Config) -> Result<Session, PublishError> {
         .wait()
         .map_err(|e| PublishError::Zenoh(format!("opening a session: {e}")))
 }
+
+/// Watches whether the node is connected to anything it was told to connect to (`[zenoh]
+/// connect`): a router outage is otherwise invisible, as zenoh accepts puts with nobody to send
+/// them to. Checked at most twice a second; each change is logged once.
+pub struct ConnectionWatch {
+    session: Session,
+    connected: bool,
+    checked: std::time::Instant,
+    lost_at: Option<std::time::Instant>,
+}
+
+impl ConnectionWatch {
+    /// A watch when zenoh publishes and `connect` names endpoints; None otherwise (an embedded
+    /// peer with nobody configured to connect to has no outage to report).
+    pub fn new(config: &Config, session: Option<&Session>) -> Option<Self> {
+        let session = session.filter(|_| config.publish.zenoh && !config.zenoh.connect.is_empty())?;
+        let mut watch = Self {
+            session: session.clone(),
+            connected: true,
+            checked: std::time::Instant::now() - std::time::Duration::from_secs(1),
+            lost_at: None,
+        };
+        watch.connected();
+        Some(watch)
+    }
+
+    /// Whether a router or peer is connected now (cached for 500 ms).
+    pub fn connected(&mut self) -> bool {
+        if self.checked.elapsed() < std::time::Duration::from_millis(500) {
+            return self.connected;
+        }
+        self.checked = std::time::Instant::now();
+        let info = self.session.info();
+        let now = info.routers_zid().wait().next().is_some() || info.peers_zid().wait().next().is_some();
+        match (self.connected, now) {
+            (true, false) => {
+                log::warn!("zenoh: no router or peer connected; states published now reach nobody there");
+                self.lost_at = Some(std::time::Instant::now());
+            }
+            (false, true) => log::info!(
+                "zenoh: connected again after {:.1} s; publishing reaches subscribers",
+                self.lost_at.map(|t| t.elapsed().as_secs_f64()).unwrap_or(0.0)
+            ),
+            _ => {}
+        }
+        self.connected = now;
+        now
+    }
+}

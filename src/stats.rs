@@ -80,6 +80,7 @@ pub struct StreamCounters {
     dropped: AtomicU64,
     non_finite_points: AtomicU64,
     published: AtomicU64,
+    published_unconnected: AtomicU64,
     publish_errors: AtomicU64,
     rejected: Mutex<BTreeMap<String, u64>>,
 }
@@ -99,6 +100,11 @@ impl StreamCounters {
     }
     pub fn add_published(&self) {
         self.published.fetch_add(1, Ordering::Relaxed);
+    }
+    /// A state put on zenoh while the node had no connection to the routers or peers it was told
+    /// to connect to: it reached nobody there.
+    pub fn add_published_unconnected(&self) {
+        self.published_unconnected.fetch_add(1, Ordering::Relaxed);
     }
     pub fn add_publish_error(&self) {
         self.publish_errors.fetch_add(1, Ordering::Relaxed);
@@ -122,6 +128,9 @@ pub struct StreamSnapshot {
     pub dropped: u64,
     pub rejected: BTreeMap<String, u64>,
     pub published: u64,
+    /// Of those, states put on zenoh while none of the configured `connect` endpoints was
+    /// connected (a router outage): nobody behind them received these.
+    pub published_unconnected: u64,
     /// Outputs the sinks failed to send (logged).
     pub publish_errors: u64,
     pub non_finite_points: u64,
@@ -177,6 +186,7 @@ impl Stats {
                         dropped: c.dropped.load(Ordering::Relaxed),
                         rejected: c.rejected.lock().expect("counter lock").clone(),
                         published: c.published.load(Ordering::Relaxed),
+                        published_unconnected: c.published_unconnected.load(Ordering::Relaxed),
                         publish_errors: c.publish_errors.load(Ordering::Relaxed),
                         non_finite_points: c.non_finite_points.load(Ordering::Relaxed),
                     },

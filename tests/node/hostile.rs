@@ -402,3 +402,90 @@ fn chunks_and_records_that_claim_more_than_exists_are_refused_before_any_allocat
         assert!(log.contains("claims"), "{name}: the reason names the claim: {log}");
     }
 }
+
+/// A zenoh router on `endpoint` (loopback, no scouting) with a subscriber counting `key`'s samples.
+fn router(endpoint: &str, key: &str) -> (zenoh::Session, Arc<std::sync::atomic::AtomicUsize>) {
+    let mut config = zenoh::Config::default();
+    config.insert_json5("mode", "\"router\"").unwrap();
+    config
+        .insert_json5("listen/endpoints", &format!("[\"{endpoint}\"]"))
+        .unwrap();
+    config.insert_json5("scouting/multicast/enabled", "false").unwrap();
+    let session = zenoh::open(config).wait().unwrap();
+    let count = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    let counter = count.clone();
+    session
+        .declare_subscriber(key.to_string())
+        .callback(move |_| {
+            counter.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        })
+        .background()
+        .wait()
+        .unwrap();
+    (session, count)
+}
+
+#[test]
+fn a_router_outage_is_counted_and_publishing_resumes_when_it_returns() {
+    // Defect 10: states sent while the router was away counted as published, silently.
+    use std::sync::atomic::Ordering::SeqCst;
+    let endpoint = free_endpoint();
+    let mut config: Config = test_config("outage", &endpoint);
+    config.zenoh.mode = "client".into();
+    config.zenoh.listen = vec![];
+    config.zenoh.connect = vec![endpoint.clone()];
+    config.sources = vec![toml::from_str(&format!(
+        "stream = \"m\"\nkind = \"files\"\npath = {:?}\nrepeat = true\nrate_hz = 20.0",
+        repo().join("sim/samples/meshes").display().to_string()
+    ))
+    .unwrap()];
+    let key = config.state_key("m");
+    let (first, before) = router(&endpoint, &key);
+    let session = gdvae_node::publish::open_session(&config).unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let stats = Arc::new(Stats::default());
+    let handle = {
+        let (config, stop, stats) = (config.clone(), stop.clone(), stats.clone());
+        std::thread::spawn(move || {
+            let bundle = Bundle::load(&config.model.bundle).unwrap();
+            pipeline::run(&config, &bundle, Some(session), stop, stats, RunOptions::default())
+        })
+    };
+    let unconnected = || {
+        stats
+            .snapshot()
+            .streams
+            .get("m")
+            .map(|c| c.published_unconnected)
+            .unwrap_or(0)
+    };
+    let published = || stats.snapshot().streams.get("m").map(|c| c.published).unwrap_or(0);
+    assert!(
+        wait_until(Duration::from_secs(60), || before.load(SeqCst) >= 5),
+        "states reach the router"
+    );
+    assert_eq!(unconnected(), 0);
+    first.close().wait().unwrap();
+    drop(first);
+    assert!(
+        wait_until(Duration::from_secs(30), || unconnected() >= 5),
+        "states published while the router is away are counted as reaching nobody ({} so far)",
+        unconnected()
+    );
+    let (_second, after) = router(&endpoint, &key);
+    assert!(
+        wait_until(Duration::from_secs(60), || after.load(SeqCst) >= 5),
+        "publishing resumes when the router returns"
+    );
+    let gap = unconnected();
+    stop.store(true, SeqCst);
+    handle.join().unwrap().unwrap();
+    assert!(
+        published() > gap,
+        "states after the outage are not counted as unconnected"
+    );
+    assert!(
+        unconnected() - gap <= 10,
+        "the count stops growing once connected again"
+    );
+}
