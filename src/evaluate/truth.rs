@@ -94,17 +94,9 @@ pub fn read_truth(path: &Path) -> Result<Vec<TruthFrame>, TruthError> {
             path: file.clone(),
             message,
         })?;
-        let stream = mcap::MessageStream::new_with_options(
-            &mapped[..scanned.sound_bytes],
-            mcap::read::Options::IgnoreEndMagic.into(),
-        )
-        .map_err(|e| TruthError::Format {
-            path: file.clone(),
-            message: e.to_string(),
-        })?;
-        for message in stream {
+        for message in crate::sources::mcap::messages(&mapped[..scanned.sound_bytes]) {
             let Ok(message) = message else { break };
-            if message.channel.topic != GROUND_TRUTH_TOPIC {
+            if &*message.topic != GROUND_TRUTH_TOPIC {
                 continue;
             }
             let frame: TruthFrame = serde_json::from_slice(&message.data).map_err(|e| TruthError::Message {

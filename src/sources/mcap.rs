@@ -242,6 +242,111 @@ fn read_channel(content: &[u8]) -> Option<(u16, String)> {
     Some((schema_id, read_string(content, &mut at)?))
 }
 
+/// One message of a recording, with its channel's topic and schema name.
+#[derive(Debug, Clone)]
+pub struct RecordedMessage {
+    pub topic: Arc<str>,
+    pub schema: Arc<str>,
+    pub log_time: u64,
+    pub data: Vec<u8>,
+}
+
+/// The messages of a recording's sound prefix (see [`scan`]), in file order, decompressing
+/// chunks as they come, with every record length (inside chunks too) held to
+/// `record_length_limit` and no read larger than the bytes that remain. Replaces the mcap crate's
+/// `MessageStream`, whose chunk reader reserves whatever an inner record's length claims. A
+/// damaged record ends the stream with its error.
+pub struct BoundedMessages<'a> {
+    bytes: &'a [u8],
+    at: usize,
+    reader: mcap::sans_io::LinearReader,
+    schemas: std::collections::HashMap<u16, Arc<str>>,
+    channels: std::collections::HashMap<u16, (Arc<str>, Arc<str>)>,
+    done: bool,
+}
+
+impl<'a> BoundedMessages<'a> {
+    /// `bytes`: the whole file (magic included), as far as it is sound; `record_length_limit`:
+    /// the largest record accepted, inside chunks too.
+    pub fn new(bytes: &'a [u8], record_length_limit: usize) -> Self {
+        let options = mcap::sans_io::LinearReaderOptions::default()
+            .with_record_length_limit(record_length_limit)
+            .with_skip_end_magic(true);
+        Self {
+            bytes,
+            at: 0,
+            reader: mcap::sans_io::LinearReader::new_with_options(options),
+            schemas: Default::default(),
+            channels: Default::default(),
+            done: false,
+        }
+    }
+}
+
+impl Iterator for BoundedMessages<'_> {
+    type Item = Result<RecordedMessage, String>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        use mcap::records::Record;
+        use mcap::sans_io::LinearReadEvent;
+        while !self.done {
+            let event = match self.reader.next_event()? {
+                Ok(event) => event,
+                Err(e) => {
+                    self.done = true;
+                    return Some(Err(e.to_string()));
+                }
+            };
+            match event {
+                LinearReadEvent::ReadRequest(wanted) => {
+                    // Never more than what is left: a corrupt length cannot make this allocate.
+                    let n = wanted.min(self.bytes.len() - self.at);
+                    self.reader.insert(n).copy_from_slice(&self.bytes[self.at..self.at + n]);
+                    self.reader.notify_read(n);
+                    self.at += n;
+                }
+                LinearReadEvent::Record { data, opcode } => match mcap::parse_record(opcode, data) {
+                    Ok(Record::Schema { header, .. }) => {
+                        self.schemas.insert(header.id, header.name.into());
+                    }
+                    Ok(Record::Channel(channel)) => {
+                        let schema = self
+                            .schemas
+                            .get(&channel.schema_id)
+                            .cloned()
+                            .unwrap_or_else(|| "".into());
+                        self.channels.insert(channel.id, (channel.topic.into(), schema));
+                    }
+                    Ok(Record::Message { header, data }) => {
+                        let Some((topic, schema)) = self.channels.get(&header.channel_id).cloned() else {
+                            self.done = true;
+                            return Some(Err(format!("a message on unknown channel {}", header.channel_id)));
+                        };
+                        return Some(Ok(RecordedMessage {
+                            topic,
+                            schema,
+                            log_time: header.log_time,
+                            data: data.into_owned(),
+                        }));
+                    }
+                    Ok(Record::DataEnd(_)) => self.done = true,
+                    Ok(_) => {}
+                    Err(e) => {
+                        self.done = true;
+                        return Some(Err(e.to_string()));
+                    }
+                },
+            }
+        }
+        None
+    }
+}
+
+/// The records of `bytes` no larger than the file itself or [`MAX_CHUNK_BYTES`].
+pub fn messages(bytes: &[u8]) -> BoundedMessages<'_> {
+    BoundedMessages::new(bytes, bytes.len().min(MAX_CHUNK_BYTES as usize))
+}
+
 /// What a recording holds for the node: its topics and their schema names. From the summary's
 /// channel records when there are some; otherwise (a file cut short has no summary) from the
 /// channels of the messages in its sound prefix.
@@ -255,22 +360,10 @@ pub fn topics(bytes: &[u8], path: &Path) -> Result<Vec<(String, String)>, McapSo
         return Ok(scanned.topics);
     }
     let mut found: Vec<(String, String)> = Vec::new();
-    let stream = mcap::MessageStream::new_with_options(
-        &bytes[..scanned.sound_bytes],
-        mcap::read::Options::IgnoreEndMagic.into(),
-    )
-    .map_err(|e| format(e.to_string()))?;
-    for message in stream {
+    for message in messages(&bytes[..scanned.sound_bytes]) {
         let Ok(message) = message else { break };
-        let topic = message.channel.topic.clone();
-        if !found.iter().any(|(t, _)| *t == topic) {
-            let schema = message
-                .channel
-                .schema
-                .as_ref()
-                .map(|s| s.name.clone())
-                .unwrap_or_default();
-            found.push((topic, schema));
+        if !found.iter().any(|(t, _)| **t == *message.topic) {
+            found.push((message.topic.to_string(), message.schema.to_string()));
         }
     }
     Ok(found)
@@ -356,14 +449,7 @@ pub fn run(settings: &SourceSettings, mut outlet: Outlet) -> Result<(), McapSour
                 path: file.clone(),
                 message,
             })?;
-            let stream = mcap::MessageStream::new_with_options(
-                &bytes[..scanned.sound_bytes],
-                mcap::read::Options::IgnoreEndMagic.into(),
-            )
-            .map_err(|e| McapSourceError::Format {
-                path: file.clone(),
-                message: e.to_string(),
-            })?;
+            let stream = messages(&bytes[..scanned.sound_bytes]);
             let mut unreadable = false;
             let mut intrinsics: Option<Arc<CameraIntrinsics>> = None;
             let mut waiting: Option<Vec<u8>> = None;
@@ -383,7 +469,7 @@ pub fn run(settings: &SourceSettings, mut outlet: Outlet) -> Result<(), McapSour
                         break;
                     }
                 };
-                let topic = message.channel.topic.as_str();
+                let topic: &str = &message.topic;
                 let decoded = match &wanted {
                     Wanted::Clouds(t) if topic == t => Some(
                         decode_point_cloud2(&message.data, settings.max_points)

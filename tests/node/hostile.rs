@@ -489,3 +489,20 @@ fn a_router_outage_is_counted_and_publishing_resumes_when_it_returns() {
         "the count stops growing once connected again"
     );
 }
+
+#[test]
+fn a_record_inside_a_chunk_that_claims_a_huge_length_is_an_error_not_an_abort() {
+    // Found by `cargo fuzz run mcap` (fuzz/): one changed byte in a compressed chunk makes a
+    // message record inside it claim an enormous length; the mcap crate's MessageStream reserved
+    // it and the process aborted. The bounded reader holds inner records to the file's size.
+    let path = repo().join("tests/fixtures/hostile/mcap_inner_record_length.mcap");
+    let bytes = std::fs::read(&path).unwrap();
+    let scan = gdvae_node::sources::mcap::scan(&bytes).unwrap();
+    let outcomes: Vec<Result<_, _>> = gdvae_node::sources::mcap::messages(&bytes[..scan.sound_bytes]).collect();
+    assert!(
+        outcomes.last().is_some_and(|o| o.is_err()),
+        "the damaged record ends the stream with an error"
+    );
+    let (_, rejected, log) = replay_counts(&path);
+    assert!(rejected >= 1, "the damage is a counted rejection: {log}");
+}
