@@ -53,6 +53,7 @@ pub const MAX_CHUNK_BYTES: u64 = 512 << 20;
 const MAGIC: &[u8] = b"\x89MCAP0\r\n";
 const OP_SCHEMA: u8 = 0x03;
 const OP_CHANNEL: u8 = 0x04;
+const OP_MESSAGE: u8 = 0x05;
 const OP_CHUNK: u8 = 0x06;
 const OP_DATA_END: u8 = 0x0F;
 
@@ -122,8 +123,8 @@ pub fn scan(bytes: &[u8]) -> Result<Scan, String> {
                 }
             }
             OP_CHANNEL => {
-                if let Some(channel) = read_channel(content) {
-                    channels.push(channel);
+                if let Some((_, schema_id, topic)) = read_channel(content) {
+                    channels.push((schema_id, topic));
                 }
             }
             OP_DATA_END => {
@@ -144,8 +145,8 @@ pub fn scan(bytes: &[u8]) -> Result<Scan, String> {
                             }
                         }
                         OP_CHANNEL => {
-                            if let Some(channel) = read_channel(content) {
-                                channels.push(channel);
+                            if let Some((_, schema_id, topic)) = read_channel(content) {
+                                channels.push((schema_id, topic));
                             }
                         }
                         _ => {}
@@ -236,10 +237,12 @@ fn read_schema(content: &[u8]) -> Option<(u16, String)> {
     Some((id, read_string(content, &mut at)?))
 }
 
-fn read_channel(content: &[u8]) -> Option<(u16, String)> {
-    let mut at = 2; // channel id
+/// A channel record's id, schema id and topic.
+fn read_channel(content: &[u8]) -> Option<(u16, u16, String)> {
+    let mut at = 0;
+    let id = read_u16(content, &mut at)?;
     let schema_id = read_u16(content, &mut at)?;
-    Some((schema_id, read_string(content, &mut at)?))
+    Some((id, schema_id, read_string(content, &mut at)?))
 }
 
 /// One message of a recording, with its channel's topic and schema name.
@@ -287,7 +290,6 @@ impl Iterator for BoundedMessages<'_> {
     type Item = Result<RecordedMessage, String>;
 
     fn next(&mut self) -> Option<Self::Item> {
-        use mcap::records::Record;
         use mcap::sans_io::LinearReadEvent;
         while !self.done {
             let event = match self.reader.next_event()? {
@@ -305,36 +307,45 @@ impl Iterator for BoundedMessages<'_> {
                     self.reader.notify_read(n);
                     self.at += n;
                 }
-                LinearReadEvent::Record { data, opcode } => match mcap::parse_record(opcode, data) {
-                    Ok(Record::Schema { header, .. }) => {
-                        self.schemas.insert(header.id, header.name.into());
+                // Records are parsed here, every length checked against the record's bytes (the
+                // mcap crate's parser reserves whatever a string length claims).
+                LinearReadEvent::Record { data, opcode } => match opcode {
+                    OP_SCHEMA => {
+                        if let Some((id, name)) = read_schema(data) {
+                            self.schemas.insert(id, name.into());
+                        }
                     }
-                    Ok(Record::Channel(channel)) => {
-                        let schema = self
-                            .schemas
-                            .get(&channel.schema_id)
-                            .cloned()
-                            .unwrap_or_else(|| "".into());
-                        self.channels.insert(channel.id, (channel.topic.into(), schema));
+                    OP_CHANNEL => {
+                        if let Some((id, schema_id, topic)) = read_channel(data) {
+                            let schema = self.schemas.get(&schema_id).cloned().unwrap_or_else(|| "".into());
+                            self.channels.insert(id, (topic.into(), schema));
+                        }
                     }
-                    Ok(Record::Message { header, data }) => {
-                        let Some((topic, schema)) = self.channels.get(&header.channel_id).cloned() else {
+                    OP_MESSAGE => {
+                        let mut at = 0;
+                        let (Some(channel_id), Some(_sequence)) = (read_u16(data, &mut at), read_u32(data, &mut at))
+                        else {
                             self.done = true;
-                            return Some(Err(format!("a message on unknown channel {}", header.channel_id)));
+                            return Some(Err("a message record cut short".into()));
+                        };
+                        let (Some(log_time), Some(_publish_time)) = (read_u64(data, &mut at), read_u64(data, &mut at))
+                        else {
+                            self.done = true;
+                            return Some(Err("a message record cut short".into()));
+                        };
+                        let Some((topic, schema)) = self.channels.get(&channel_id).cloned() else {
+                            self.done = true;
+                            return Some(Err(format!("a message on unknown channel {channel_id}")));
                         };
                         return Some(Ok(RecordedMessage {
                             topic,
                             schema,
-                            log_time: header.log_time,
-                            data: data.into_owned(),
+                            log_time,
+                            data: data[at..].to_vec(),
                         }));
                     }
-                    Ok(Record::DataEnd(_)) => self.done = true,
-                    Ok(_) => {}
-                    Err(e) => {
-                        self.done = true;
-                        return Some(Err(e.to_string()));
-                    }
+                    OP_DATA_END => self.done = true,
+                    _ => {}
                 },
             }
         }

@@ -506,3 +506,28 @@ fn a_record_inside_a_chunk_that_claims_a_huge_length_is_an_error_not_an_abort() 
     let (_, rejected, log) = replay_counts(&path);
     assert!(rejected >= 1, "the damage is a counted rejection: {log}");
 }
+
+#[test]
+fn a_schema_whose_name_claims_gigabytes_is_refused_under_an_edge_devices_memory_limit() {
+    // Found by `cargo fuzz run mcap`: a schema record's string length of 2.6 GB, which the mcap
+    // crate's record parser reserved before checking it against the record. Run under a 2 GB
+    // address-space limit, as on an edge device, the replay used to abort (exit 134); records are
+    // now parsed with every length checked against the record's bytes.
+    let path = repo().join("tests/fixtures/hostile/mcap_schema_string_length.mcap");
+    let output = std::process::Command::new("bash")
+        .current_dir(repo())
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 2000000 && exec {:?} -q replay --no-baseline --json --config config/replay.toml {:?}",
+            env!("CARGO_BIN_EXE_gdvae-node"),
+            path.display().to_string()
+        ))
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "exit {:?}: {}",
+        output.status,
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
