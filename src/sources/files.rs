@@ -106,6 +106,45 @@ fn drop_non_finite(points: &mut Vec<[f32; 3]>) -> usize {
     before - points.len()
 }
 
+/// LZF expands a byte to at most this many: a larger declared ratio is a lie.
+const LZF_MAX_RATIO: u64 = 100;
+
+/// A binary_compressed PCD's two sizes (after the DATA line) against the file and the header,
+/// before pcd-rs allocates the compressed size and LZF the uncompressed one.
+fn check_pcd_compressed_sizes(path: &Path, length: u64, data_bytes: u64) -> Result<(), String> {
+    let mut head = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(1 << 20).read_to_end(&mut head))
+        .map_err(|e| e.to_string())?;
+    let data_line = head
+        .split_inclusive(|b| *b == b'\n')
+        .scan(0usize, |offset, line| {
+            let start = *offset;
+            *offset += line.len();
+            Some((start, line))
+        })
+        .find(|(_, line)| line.starts_with(b"DATA"))
+        .map(|(start, line)| start + line.len())
+        .ok_or("no DATA line in the first MiB")?;
+    let sizes = head
+        .get(data_line..data_line + 8)
+        .ok_or("binary_compressed data cut short before its sizes")?;
+    let compressed = u32::from_le_bytes(sizes[..4].try_into().expect("4 bytes")) as u64;
+    let uncompressed = u32::from_le_bytes(sizes[4..].try_into().expect("4 bytes")) as u64;
+    let remaining = length.saturating_sub(data_line as u64 + 8);
+    if compressed > remaining {
+        return Err(format!("compressed data claims {compressed} bytes; {remaining} follow"));
+    }
+    if uncompressed > data_bytes || uncompressed > compressed.saturating_mul(LZF_MAX_RATIO) + 1024 {
+        return Err(format!(
+            "compressed data claims {uncompressed} bytes uncompressed; the header's points hold \
+             {data_bytes} and {compressed} compressed bytes at most {}",
+            compressed.saturating_mul(LZF_MAX_RATIO) + 1024
+        ));
+    }
+    Ok(())
+}
+
 type Parsed = (Vec<[f64; 3]>, Vec<[usize; 3]>);
 
 fn read_ply(path: &Path, options: &FileOptions) -> Result<Parsed, String> {
@@ -230,11 +269,15 @@ fn read_pcd(path: &Path, options: &FileOptions) -> Result<Vec<[f64; 3]>, String>
         .map(|f| f.count * f.kind.byte_size() as u64)
         .sum();
     let length = std::fs::metadata(path).map_err(|e| e.to_string())?.len();
-    if meta.data == DataKind::Binary && meta.num_points * point_bytes > length {
+    let data_bytes = meta.num_points.saturating_mul(point_bytes);
+    if meta.data == DataKind::Binary && data_bytes > length {
         return Err(format!(
             "header claims {} points of {point_bytes} bytes; the file has {length} bytes",
             meta.num_points
         ));
+    }
+    if meta.data == DataKind::BinaryCompressed {
+        check_pcd_compressed_sizes(path, length, data_bytes)?;
     }
     let position = |name: &str| {
         meta.field_defs.iter().position(|f| f.name == name).ok_or_else(|| {

@@ -531,3 +531,29 @@ fn a_schema_whose_name_claims_gigabytes_is_refused_under_an_edge_devices_memory_
         String::from_utf8_lossy(&output.stderr)
     );
 }
+
+#[test]
+fn a_compressed_pcd_whose_sizes_lie_is_a_clear_error_under_an_edge_devices_memory_limit() {
+    // Found by `cargo fuzz run files`: a binary_compressed PCD whose compressed size claims 4 GB;
+    // pcd-rs allocated it before reading. Under a 2 GB address-space limit the node aborted.
+    let path = repo().join("tests/fixtures/hostile/pcd_compressed_size.pcd");
+    let error = read_cloud(&path, &FileOptions::default()).unwrap_err().to_string();
+    assert!(error.contains("compressed data claims"), "{error}");
+    assert!(
+        error.contains("pcd_compressed_size.pcd"),
+        "the error names the file: {error}"
+    );
+    let output = std::process::Command::new("bash")
+        .current_dir(repo())
+        .arg("-c")
+        .arg(format!(
+            "ulimit -v 2000000 && exec {:?} -q encode {:?}",
+            env!("CARGO_BIN_EXE_gdvae-node"),
+            path.display().to_string()
+        ))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "a clear error, not an abort: {stderr}");
+    assert!(stderr.contains("compressed data claims"), "{stderr}");
+}
