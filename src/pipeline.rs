@@ -170,10 +170,13 @@ pub fn run(
                     .name(name.clone())
                     .spawn(move || {
                         let stream = settings.stream.clone();
-                        let result = match settings.kind {
+                        // A panic while decoding ends this source with a logged error; the other
+                        // sources and the pipeline go on.
+                        let result = contained(&format!("source '{stream}'"), || match settings.kind {
                             SourceKind::Files => sources::files::run(&settings, outlet).map_err(|e| e.to_string()),
                             _ => sources::mcap::run(&settings, outlet).map_err(|e| e.to_string()),
-                        };
+                        })
+                        .and_then(|r| r);
                         match result {
                             Ok(()) => log::info!("source '{stream}': finished"),
                             Err(e) => log::error!("source '{stream}' stopped: {e}"),

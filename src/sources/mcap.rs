@@ -198,10 +198,28 @@ fn check_chunk(content: &[u8]) -> Result<(), String> {
             content.len() - at
         ));
     }
-    if compression.is_empty() && uncompressed != records {
-        return Err(format!(
-            "uncompressed, its records are {records} bytes but it claims {uncompressed}"
-        ));
+    if compression.is_empty() {
+        if uncompressed != records {
+            return Err(format!(
+                "uncompressed, its records are {records} bytes but it claims {uncompressed}"
+            ));
+        }
+        // Uncompressed records can be checked here: each must end within the chunk.
+        let inner = &content[at..at + records as usize];
+        let mut offset = 0usize;
+        while offset < inner.len() {
+            let header = inner
+                .get(offset..offset + 9)
+                .ok_or("a record header inside it is cut short")?;
+            let length = u64::from_le_bytes(header[1..9].try_into().expect("8 bytes"));
+            if length > (inner.len() - offset - 9) as u64 {
+                return Err(format!(
+                    "a record inside it claims {length} bytes; {} remain in the chunk",
+                    inner.len() - offset - 9
+                ));
+            }
+            offset += 9 + length as usize;
+        }
     }
     Ok(())
 }

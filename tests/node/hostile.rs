@@ -557,3 +557,24 @@ fn a_compressed_pcd_whose_sizes_lie_is_a_clear_error_under_an_edge_devices_memor
     assert_eq!(output.status.code(), Some(1), "a clear error, not an abort: {stderr}");
     assert!(stderr.contains("compressed data claims"), "{stderr}");
 }
+
+#[test]
+fn an_uncompressed_chunk_whose_inner_record_runs_past_its_end_is_damage() {
+    // Found by `cargo fuzz run mcap`: inside an uncompressed chunk, a record longer than what is
+    // left of the chunk; the mcap crate's reader subtracts it from the chunk's remaining length
+    // (an overflow panic in debug builds, a misread of everything after it in release). The scan
+    // walks uncompressed chunks' records and stops the replay before such a chunk.
+    let path = repo().join("tests/fixtures/hostile/mcap_inner_record_beyond_chunk.mcap");
+    let bytes = std::fs::read(&path).unwrap();
+    let scan = gdvae_node::sources::mcap::scan(&bytes).unwrap();
+    let damage = scan.damage.expect("the chunk is damage");
+    assert!(damage.contains("inside it"), "{damage}");
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
+        .current_dir(repo())
+        .args(["replay", "--no-baseline", "--config", "config/replay.toml"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}
