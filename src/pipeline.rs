@@ -658,19 +658,7 @@ fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant, Instant)>, c
                             r.reason
                         );
                     }
-                    Output::Rejected(state::Rejected {
-                        schema: state::REJECTED_SCHEMA.into(),
-                        node: node.clone(),
-                        stream: r.stream,
-                        sequence: r.sequence,
-                        stage: r.stage.into(),
-                        reason: r.reason,
-                        stamps: state::Stamps {
-                            sensor_ns: r.sensor_stamp_ns,
-                            ingest_ns: r.ingest_unix_ns,
-                            publish_ns: 0, // stamped by the publisher
-                        },
-                    })
+                    rejected_output(&node, r)
                 }
                 Done::Encoded(frame) => {
                     let dt = match (frame.origin.sensor_stamp_ns, tracker.last_stamp_ns) {
@@ -688,20 +676,7 @@ fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant, Instant)>, c
                             // The stream's filters may be half updated: start them afresh.
                             tracker.tracker = StreamTracker::new(settings);
                             stats.stream(&frame.origin.stream).add_rejected("track");
-                            let r = frame.origin.reject("track", message);
-                            Output::Rejected(state::Rejected {
-                                schema: state::REJECTED_SCHEMA.into(),
-                                node: node.clone(),
-                                stream: r.stream,
-                                sequence: r.sequence,
-                                stage: r.stage.into(),
-                                reason: r.reason,
-                                stamps: state::Stamps {
-                                    sensor_ns: r.sensor_stamp_ns,
-                                    ingest_ns: r.ingest_unix_ns,
-                                    publish_ns: 0,
-                                },
-                            })
+                            rejected_output(&node, frame.origin.reject("track", message))
                         }
                     }
                 }
@@ -718,6 +693,23 @@ fn track(rx: Receiver<Ticketed<Done>>, tx: Sender<(Output, Instant, Instant)>, c
             pending.len()
         );
     }
+}
+
+/// The published message of a rejection (schema `gdvae.rejected/1`).
+fn rejected_output(node: &str, r: crate::sources::Rejection) -> Output {
+    Output::Rejected(state::Rejected {
+        schema: state::REJECTED_SCHEMA.into(),
+        node: node.to_string(),
+        stream: r.stream,
+        sequence: r.sequence,
+        stage: r.stage.into(),
+        reason: r.reason,
+        stamps: state::Stamps {
+            sensor_ns: r.sensor_stamp_ns,
+            ingest_ns: r.ingest_unix_ns,
+            publish_ns: 0, // stamped by the publisher
+        },
+    })
 }
 
 fn variances(log_variance: &[f32]) -> Vec<f32> {

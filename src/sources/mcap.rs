@@ -117,16 +117,6 @@ pub fn scan(bytes: &[u8]) -> Result<Scan, String> {
                     break;
                 }
             }
-            OP_SCHEMA => {
-                if let Some((id, name)) = read_schema(content) {
-                    schemas.insert(id, name);
-                }
-            }
-            OP_CHANNEL => {
-                if let Some((_, schema_id, topic)) = read_channel(content) {
-                    channels.push((schema_id, topic));
-                }
-            }
             OP_DATA_END => {
                 scan.sound_bytes = offset + 9 + length as usize;
                 // The summary follows: read on for its channel records, which name the topics.
@@ -137,25 +127,12 @@ pub fn scan(bytes: &[u8]) -> Result<Scan, String> {
                     if len > (bytes.len() - at - 9) as u64 {
                         break;
                     }
-                    let content = &bytes[at + 9..at + 9 + len as usize];
-                    match op {
-                        OP_SCHEMA => {
-                            if let Some((id, name)) = read_schema(content) {
-                                schemas.insert(id, name);
-                            }
-                        }
-                        OP_CHANNEL => {
-                            if let Some((_, schema_id, topic)) = read_channel(content) {
-                                channels.push((schema_id, topic));
-                            }
-                        }
-                        _ => {}
-                    }
+                    note_channel(op, &bytes[at + 9..at + 9 + len as usize], &mut schemas, &mut channels);
                     at += 9 + len as usize;
                 }
                 break;
             }
-            _ => {}
+            op => note_channel(op, content, &mut schemas, &mut channels),
         }
         offset += 9 + length as usize;
     }
@@ -167,6 +144,28 @@ pub fn scan(bytes: &[u8]) -> Result<Scan, String> {
         }
     }
     Ok(scan)
+}
+
+/// Notes a top-level schema or channel record (the others are ignored here).
+fn note_channel(
+    opcode: u8,
+    content: &[u8],
+    schemas: &mut std::collections::HashMap<u16, String>,
+    channels: &mut Vec<(u16, String)>,
+) {
+    match opcode {
+        OP_SCHEMA => {
+            if let Some((id, name)) = read_schema(content) {
+                schemas.insert(id, name);
+            }
+        }
+        OP_CHANNEL => {
+            if let Some((_, schema_id, topic)) = read_channel(content) {
+                channels.push((schema_id, topic));
+            }
+        }
+        _ => {}
+    }
 }
 
 /// A chunk's header (start and end time, uncompressed size and CRC, compression, records
