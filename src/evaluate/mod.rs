@@ -108,6 +108,8 @@ pub struct Row {
     pub raw_yaw: f64,
     pub filtered_yaw: f64,
     pub filtered_yaw_std: Option<f64>,
+    /// Horizontal distance of `centre_m` to the true position (m).
+    pub position_m: f64,
     /// Index of the true subject in order of appearance.
     pub subject: usize,
     pub identity: u64,
@@ -184,44 +186,28 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
     let mut changes_all = Changes::default();
     for recording in recordings {
         let own = states.get(recording.stream.as_str()).cloned().unwrap_or_default();
-        let report = recording_report(
+        let (report, own_segments) = recording_report(
             recording,
             &own,
             rejected.get(recording.stream.as_str()).copied(),
             options,
         );
-        // Pooled figures and the identity segments, over matched frames.
-        let by_stamp: HashMap<u64, &TruthFrame> = recording.truth.iter().map(|t| (t.stamp_nanos, t)).collect();
-        let mut current: Option<Segment> = None;
-        for state in &own {
-            let Some(truth) = state.stamps.sensor_ns.and_then(|s| by_stamp.get(&s)) else {
-                continue;
-            };
-            raw_all.push(state.raw.yaw as f64 - truth.yaw);
-            filtered_all.push(state.filtered.yaw as f64 - truth.yaw);
+        // Pooled figures over the matched frames.
+        for row in &report.rows {
+            let family = &recording.truth[row.frame].family;
+            raw_all.push(row.raw_yaw - row.true_yaw);
+            filtered_all.push(row.filtered_yaw - row.true_yaw);
             raw_family
-                .entry(truth.family.clone())
+                .entry(family.clone())
                 .or_default()
-                .push(state.raw.yaw as f64 - truth.yaw);
+                .push(row.raw_yaw - row.true_yaw);
             filtered_family
-                .entry(truth.family.clone())
+                .entry(family.clone())
                 .or_default()
-                .push(state.filtered.yaw as f64 - truth.yaw);
-            position_all.push(horizontal_distance(state, truth));
-            if current.as_ref().is_none_or(|s| s.subject != truth.subject) {
-                segments.extend(current.take());
-                current = Some(Segment {
-                    recording: recording.stream.clone(),
-                    subject: truth.subject.clone(),
-                    family: truth.family.clone(),
-                    frames: Vec::new(),
-                });
-            }
-            if let Some(segment) = current.as_mut() {
-                segment.frames.push((state.raw.z_i.clone(), state.raw.z_i_var.clone()));
-            }
+                .push(row.filtered_yaw - row.true_yaw);
+            position_all.push(row.position_m);
         }
-        segments.extend(current);
+        segments.extend(own_segments);
         if let Some(changes) = &report.changes {
             changes_all.add(changes);
         }
@@ -263,12 +249,13 @@ fn horizontal_distance(state: &State, truth: &TruthFrame) -> f64 {
     dx.hypot(dy)
 }
 
+/// One recording's report, and its subjects' identity segments (raw z_I per matched frame).
 fn recording_report(
     recording: &Recording,
     states: &[&State],
     rejected: Option<usize>,
     options: &EvaluateOptions,
-) -> RecordingReport {
+) -> (RecordingReport, Vec<Segment>) {
     let truth = &recording.truth;
     let by_stamp: HashMap<u64, (usize, &TruthFrame)> =
         truth.iter().enumerate().map(|(i, t)| (t.stamp_nanos, (i, t))).collect();
@@ -283,7 +270,7 @@ fn recording_report(
         }
     }
     let mut rows = Vec::new();
-    let (mut raw, mut filtered, mut position) = (Vec::new(), Vec::new(), Vec::new());
+    let mut segments: Vec<Segment> = Vec::new();
     let mut matched_truth = vec![false; truth.len()];
     let mut reported_at = Vec::new();
     for state in states {
@@ -291,11 +278,19 @@ fn recording_report(
             continue;
         };
         matched_truth[index] = true;
-        raw.push(state.raw.yaw as f64 - t.yaw);
-        filtered.push(state.filtered.yaw as f64 - t.yaw);
-        position.push(horizontal_distance(state, t));
         if state.event.is_some() {
             reported_at.push(index);
+        }
+        if segments.last().is_none_or(|s| s.subject != t.subject) {
+            segments.push(Segment {
+                recording: recording.stream.clone(),
+                subject: t.subject.clone(),
+                family: t.family.clone(),
+                frames: Vec::new(),
+            });
+        }
+        if let Some(segment) = segments.last_mut() {
+            segment.frames.push((state.raw.z_i.clone(), state.raw.z_i_var.clone()));
         }
         rows.push(Row {
             frame: index,
@@ -303,6 +298,7 @@ fn recording_report(
             raw_yaw: state.raw.yaw as f64,
             filtered_yaw: state.filtered.yaw as f64,
             filtered_yaw_std: state.filtered.yaw_std.map(|s| s as f64),
+            position_m: horizontal_distance(state, t),
             subject: subjects.iter().position(|s| *s == t.subject).unwrap_or(0),
             identity: state.shape.identity,
             distance: state.shape.distance as f64,
@@ -317,7 +313,10 @@ fn recording_report(
     let has_truth = !truth.is_empty();
     let matched = rows.len();
     let yaws: Vec<f64> = states.iter().map(|s| s.filtered.yaw as f64).collect();
-    RecordingReport {
+    let raw: Vec<f64> = rows.iter().map(|r| r.raw_yaw - r.true_yaw).collect();
+    let filtered: Vec<f64> = rows.iter().map(|r| r.filtered_yaw - r.true_yaw).collect();
+    let position: Vec<f64> = rows.iter().map(|r| r.position_m).collect();
+    let report = RecordingReport {
         stream: recording.stream.clone(),
         path: recording.path.display().to_string(),
         has_truth,
@@ -337,7 +336,8 @@ fn recording_report(
         changes_reported: states.iter().filter(|s| s.event.is_some()).count(),
         filtered_yaw_steps: metrics::angle_steps(&yaws),
         rows,
-    }
+    };
+    (report, segments)
 }
 
 /// Writes one PNG per recording with ground truth into `folder`; returns the files written.

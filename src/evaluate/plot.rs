@@ -6,6 +6,7 @@
 use std::path::Path;
 use std::sync::Once;
 
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
@@ -29,6 +30,32 @@ fn register_font() -> Result<(), PlotError> {
 
 fn err<E: std::fmt::Display>(e: E) -> PlotError {
     PlotError(e.to_string())
+}
+
+type Area<'a> = DrawingArea<BitMapBackend<'a>, plotters::coord::Shift>;
+type Chart<'a, 'b> = ChartContext<'b, BitMapBackend<'a>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
+
+/// One panel over the frame index: caption, axes and mesh drawn.
+fn panel<'a, 'b>(
+    area: &'b Area<'a>,
+    caption: &str,
+    frames: f64,
+    y: std::ops::Range<f64>,
+) -> Result<Chart<'a, 'b>, PlotError> {
+    let mut chart = ChartBuilder::on(area)
+        .margin(10)
+        .x_label_area_size(35)
+        .y_label_area_size(60)
+        .caption(caption, ("sans-serif", 16))
+        .build_cartesian_2d(0.0..frames, y)
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .x_desc("frame")
+        .label_style(("sans-serif", 13))
+        .draw()
+        .map_err(err)?;
+    Ok(chart)
 }
 
 fn wrapped_deg(angle: f64) -> f64 {
@@ -57,26 +84,14 @@ pub fn recording(path: &Path, recording: &RecordingReport, gate: f64, threshold:
     );
     let root = root.titled(&title, ("sans-serif", 22)).map_err(err)?;
     let panels = root.split_evenly((3, 1));
-    let x_label = "frame";
 
     // Heading, wrapped to (-180, 180].
-    let mut chart = ChartBuilder::on(&panels[0])
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(60)
-        .caption(
-            "heading (deg): truth black, raw grey, filtered blue",
-            ("sans-serif", 16),
-        )
-        .build_cartesian_2d(0.0..last, -180.0..180.0)
-        .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc(x_label)
-        .y_labels(7)
-        .label_style(("sans-serif", 13))
-        .draw()
-        .map_err(err)?;
+    let mut chart = panel(
+        &panels[0],
+        "heading (deg): truth black, raw grey, filtered blue",
+        last,
+        -180.0..180.0,
+    )?;
     let dots = |value: fn(&super::Row) -> f64, color: RGBColor, size: i32| {
         rows.iter()
             .map(move |r| Circle::new((r.frame as f64, wrapped_deg(value(r))), size, color.filled()))
@@ -95,19 +110,12 @@ pub fn recording(path: &Path, recording: &RecordingReport, gate: f64, threshold:
         .map(|r| (r.subject as f64).max(r.identity as f64))
         .fold(1.0, f64::max)
         + 0.5;
-    let mut chart = ChartBuilder::on(&panels[1])
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(60)
-        .caption("identity: true subject black, node's identity red", ("sans-serif", 16))
-        .build_cartesian_2d(0.0..last, -0.5..top)
-        .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc(x_label)
-        .label_style(("sans-serif", 13))
-        .draw()
-        .map_err(err)?;
+    let mut chart = panel(
+        &panels[1],
+        "identity: true subject black, node's identity red",
+        last,
+        -0.5..top,
+    )?;
     chart
         .draw_series(LineSeries::new(
             rows.iter().map(|r| (r.frame as f64, r.subject as f64)),
@@ -128,22 +136,12 @@ pub fn recording(path: &Path, recording: &RecordingReport, gate: f64, threshold:
         .filter(|v| v.is_finite())
         .fold(gate.max(threshold.unwrap_or(0.0)) * 1.5, f64::max)
         .min(gate.max(threshold.unwrap_or(0.0)) * 6.0);
-    let mut chart = ChartBuilder::on(&panels[2])
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(60)
-        .caption(
-            "shape: distance grey (gate dashed), change statistic orange (threshold dashed)",
-            ("sans-serif", 16),
-        )
-        .build_cartesian_2d(0.0..last, 0.0..high)
-        .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc(x_label)
-        .label_style(("sans-serif", 13))
-        .draw()
-        .map_err(err)?;
+    let mut chart = panel(
+        &panels[2],
+        "shape: distance grey (gate dashed), change statistic orange (threshold dashed)",
+        last,
+        0.0..high,
+    )?;
     chart
         .draw_series(LineSeries::new(
             rows.iter().map(|r| (r.frame as f64, r.distance.min(high))),

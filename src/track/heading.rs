@@ -29,7 +29,7 @@ const HUBER_SIGMAS: f64 = 2.5;
 const INITIAL_RATE_STD: f64 = 1.0;
 /// Weight of each frame in the running mean of the encoder's frame-to-frame jitter (about 1 s at
 /// 30 Hz): an encoder that scatters more than `heading_std_deg` says gets a wider noise.
-const INNOVATION_WEIGHT: f64 = 1.0 / 30.0;
+const JITTER_WEIGHT: f64 = 1.0 / 30.0;
 
 /// `angle` wrapped to (-pi, pi].
 fn wrap(angle: f64) -> f64 {
@@ -160,7 +160,7 @@ impl HeadingFilter {
         self.time += dt;
         if let Some(previous) = self.previous_encoder_yaw {
             let step = wrap_axial(encoder_yaw - previous);
-            self.jitter_power += INNOVATION_WEIGHT * (step * step - self.jitter_power);
+            self.jitter_power += JITTER_WEIGHT * (step * step - self.jitter_power);
         }
         self.previous_encoder_yaw = Some(encoder_yaw);
         let velocity = self.motion.push(self.time, centre[0], centre[1]);
