@@ -247,7 +247,8 @@ impl Default for ZenohSettings {
 pub enum SourceKind {
     /// Point-cloud files (PLY, PCD, OBJ, XYZ/CSV): one file, or every such file of a folder.
     Files,
-    /// An MCAP recording or a rosbag2 folder holding MCAP files.
+    /// A recording: an MCAP file, a rosbag2 sqlite3 file (.db3), or a rosbag2 folder (either storage).
+    #[serde(alias = "rosbag2", alias = "recording")]
     Mcap,
     /// A zenoh subscription.
     Zenoh,
@@ -307,6 +308,10 @@ pub struct SourceSettings {
     pub sensor_to_gravity_rotation: Option<[[f32; 3]; 3]>,
     #[serde(default)]
     pub sensor_to_gravity_translation: Option<[f32; 3]>,
+    /// The node runs on without this source when it cannot start or fails (logged, listed in the
+    /// report). Off by default: a source that cannot do its job fails the run, with a non-zero exit.
+    #[serde(default)]
+    pub optional: bool,
 }
 
 fn default_depth_step() -> usize {

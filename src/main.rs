@@ -224,7 +224,7 @@ fn run(command: Command) -> Result<()> {
                 Some(gdvae_node::benchmark::encoder_alone(&bundle, &config.model, frames)?)
             };
             print_report(&summary, baseline.as_ref().map(|b| (b, &config)), json)?;
-            Ok(())
+            require_states(&summary)
         }
         Command::Evaluate {
             recordings,
@@ -327,27 +327,21 @@ fn run(command: Command) -> Result<()> {
                 "ONNX Runtime: {}",
                 loaded_library().map(|p| p.display().to_string()).unwrap_or_default()
             );
+            let mut unusable = Vec::new();
             for source in &config.sources {
-                match source.kind {
-                    SourceKind::Files => {
-                        let files =
-                            gdvae_node::sources::files::list_files(source.path.as_deref().unwrap_or(Path::new("")))?;
-                        println!("source '{}': {} file(s)", source.stream, files.len());
+                match gdvae_node::sources::check(source) {
+                    Ok(found) => println!("source '{}': {found}", source.stream),
+                    Err(message) if source.optional => {
+                        println!("source '{}' (optional) cannot start: {message}", source.stream)
                     }
-                    SourceKind::Mcap => {
-                        let files = gdvae_node::sources::mcap::recording_files(
-                            source.path.as_deref().unwrap_or(Path::new("")),
-                        )?;
-                        println!("source '{}': {} recording file(s)", source.stream, files.len());
-                    }
-                    SourceKind::Zenoh => {
-                        println!(
-                            "source '{}': zenoh key {}",
-                            source.stream,
-                            source.key.as_deref().unwrap_or("")
-                        )
+                    Err(message) => {
+                        println!("source '{}' cannot start: {message}", source.stream);
+                        unusable.push(source.stream.clone());
                     }
                 }
+            }
+            if !unusable.is_empty() {
+                bail!("source(s) {} cannot start; `run` would fail", unusable.join(", "));
             }
             if config.publish.zenoh {
                 println!(
@@ -430,6 +424,7 @@ fn evaluate(
         collect: Some(tx),
     };
     let summary = run_pipeline(&config, options_run, false)?;
+    require_states(&summary)?;
     let outputs: Vec<_> = rx.try_iter().collect();
     let report = gdvae_node::evaluate::report(&recordings, &outputs, &options);
     if let Some(folder) = plots {
@@ -601,6 +596,27 @@ fn print_evaluation(report: &gdvae_node::evaluate::Report, summary: &RunSummary)
     );
 }
 
+/// A replay that published nothing did not do its job: every input failed. The error says how
+/// many frames came in and at which stages they were rejected (the log has each reason).
+fn require_states(summary: &RunSummary) -> Result<()> {
+    let streams = &summary.snapshot.streams;
+    if streams.values().any(|c| c.published > 0) {
+        return Ok(());
+    }
+    let received: u64 = streams.values().map(|c| c.received).sum();
+    let mut reasons: Vec<(u64, String)> = streams
+        .values()
+        .flat_map(|c| c.rejected.iter().map(|(reason, n)| (*n, reason.clone())))
+        .collect();
+    reasons.sort_by(|a, b| b.0.cmp(&a.0));
+    let reasons: Vec<String> = reasons.iter().map(|(n, stage)| format!("{n} by {stage}")).collect();
+    bail!(
+        "every input failed: no state published ({received} frame(s) received{}{})",
+        if reasons.is_empty() { "" } else { "; rejected " },
+        reasons.join(", ")
+    )
+}
+
 /// The config a one-off command starts from: the given file or the defaults, with `--bundle` applied.
 fn starting_config(path: Option<PathBuf>, bundle: Option<PathBuf>) -> Result<Config> {
     let mut config = match path {
@@ -739,6 +755,9 @@ fn print_report(
                 String::new()
             }
         );
+    }
+    for (stream, reason) in &summary.failed_sources {
+        println!("  {stream:<16} (optional) {reason}");
     }
     println!("latency (ms)      count     mean      p50      p90      p99      max");
     for stage in STAGES {

@@ -40,6 +40,10 @@ pub enum PipelineError {
     Publish(#[from] crate::publish::PublishError),
     #[error("zenoh source '{stream}': {message}")]
     Subscribe { stream: String, message: String },
+    #[error("source '{stream}' {message}")]
+    Source { stream: String, message: String },
+    #[error("no source could start: {0}")]
+    NoSource(String),
     #[error("{0}")]
     Thread(String),
 }
@@ -56,6 +60,8 @@ pub struct RunOptions {
 
 #[derive(Debug, Clone)]
 pub struct RunSummary {
+    /// Optional sources that could not start or failed, and why (required ones fail the run).
+    pub failed_sources: Vec<(String, String)>,
     /// From the start of `run` (loading encoders included) to the last publish.
     pub wall: Duration,
     /// From the first frame's ingest to the last publish: what throughput is measured over.
@@ -119,6 +125,36 @@ pub fn run(
     let queue = config.pipeline.queue;
     let m = &config.model;
 
+    // Every source is checked before anything runs: a required one that cannot start fails the
+    // run here; an optional one is left out, logged and listed in the summary.
+    let mut failed_sources = Vec::new();
+    let mut starting = Vec::new();
+    for source in &config.sources {
+        match sources::check(source) {
+            Ok(found) => {
+                log::info!("source '{}': {found}", source.stream);
+                starting.push(source);
+            }
+            Err(message) if source.optional => {
+                log::error!(
+                    "optional source '{}' cannot start, running without it: {message}",
+                    source.stream
+                );
+                failed_sources.push((source.stream.clone(), format!("cannot start: {message}")));
+            }
+            Err(message) => {
+                return Err(PipelineError::Source {
+                    stream: source.stream.clone(),
+                    message: format!("cannot start: {message}"),
+                })
+            }
+        }
+    }
+    if starting.is_empty() {
+        let reasons: Vec<String> = failed_sources.iter().map(|(s, m)| format!("'{s}' {m}")).collect();
+        return Err(PipelineError::NoSource(reasons.join("; ")));
+    }
+
     // Encoders first: a bundle or runtime problem fails before any source starts.
     let mut encoders = Vec::new();
     for _ in 0..m.workers {
@@ -138,8 +174,10 @@ pub fn run(
     let mut source_channels: Vec<(bool, Receiver<Ingest>)> = Vec::new();
     let mut subscribers = Vec::new();
     // Zenoh subscriptions first: if one fails, no source thread has started yet.
-    let mut ordered: Vec<&crate::config::SourceSettings> = config.sources.iter().collect();
+    let mut ordered = starting;
     ordered.sort_by_key(|s| s.kind != SourceKind::Zenoh);
+    // Sources that stop with an error: (stream, reason, optional).
+    let source_errors: Arc<std::sync::Mutex<Vec<(String, String, bool)>>> = Arc::default();
     for source in ordered {
         let live = source.is_live();
         let (outlet, receiver) = Outlet::new(&source.stream, live, queue, stats.clone(), stop.clone());
@@ -151,11 +189,23 @@ pub fn run(
                     stream: source.stream.clone(),
                     message: "no zenoh session".into(),
                 })?;
-                let subscriber =
-                    sources::zenoh::subscribe(session, source, outlet).map_err(|e| PipelineError::Subscribe {
-                        stream: source.stream.clone(),
-                        message: e.to_string(),
-                    })?;
+                let subscriber = match sources::zenoh::subscribe(session, source, outlet) {
+                    Ok(subscriber) => subscriber,
+                    Err(e) if source.optional => {
+                        log::error!(
+                            "optional source '{}' cannot subscribe, running without it: {e}",
+                            source.stream
+                        );
+                        failed_sources.push((source.stream.clone(), format!("cannot subscribe: {e}")));
+                        continue;
+                    }
+                    Err(e) => {
+                        return Err(PipelineError::Subscribe {
+                            stream: source.stream.clone(),
+                            message: e.to_string(),
+                        })
+                    }
+                };
                 log::info!(
                     "source '{}': zenoh subscription to {}",
                     source.stream,
@@ -166,6 +216,7 @@ pub fn run(
             SourceKind::Files | SourceKind::Mcap => {
                 let settings = source.clone();
                 let name = format!("source:{}", source.stream);
+                let errors = source_errors.clone();
                 let handle = std::thread::Builder::new()
                     .name(name.clone())
                     .spawn(move || {
@@ -174,12 +225,19 @@ pub fn run(
                         // sources and the pipeline go on.
                         let result = contained(&format!("source '{stream}'"), || match settings.kind {
                             SourceKind::Files => sources::files::run(&settings, outlet).map_err(|e| e.to_string()),
-                            _ => sources::mcap::run(&settings, outlet).map_err(|e| e.to_string()),
+                            _ => sources::recording::run(&settings, outlet).map_err(|e| e.to_string()),
                         })
                         .and_then(|r| r);
                         match result {
                             Ok(()) => log::info!("source '{stream}': finished"),
-                            Err(e) => log::error!("source '{stream}' stopped: {e}"),
+                            Err(e) => {
+                                log::error!("source '{stream}' stopped: {e}");
+                                errors.lock().unwrap_or_else(|e| e.into_inner()).push((
+                                    stream,
+                                    format!("stopped: {e}"),
+                                    settings.optional,
+                                ));
+                            }
                         }
                     })
                     .map_err(|e| PipelineError::Thread(e.to_string()))?;
@@ -349,7 +407,14 @@ pub fn run(
     }
     flushed?;
     let last_publish = Instant::now();
+    for (stream, message, optional) in std::mem::take(&mut *source_errors.lock().unwrap_or_else(|e| e.into_inner())) {
+        if !optional {
+            return Err(PipelineError::Source { stream, message });
+        }
+        failed_sources.push((stream, message));
+    }
     Ok(RunSummary {
+        failed_sources,
         wall: started.elapsed(),
         busy: first_ingest.get().map(|f| last_publish - *f).unwrap_or_default(),
         snapshot: stats.snapshot(),

@@ -58,9 +58,7 @@ impl WorldFromCamera {
 
 #[derive(Debug, thiserror::Error)]
 pub enum TruthError {
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
-    #[error("{path}: not a readable MCAP file: {message}")]
+    #[error("{path}: {message}")]
     Format { path: PathBuf, message: String },
     #[error("{path}: ground-truth message {index} is not valid: {message}")]
     Message {
@@ -70,41 +68,33 @@ pub enum TruthError {
     },
 }
 
-/// The ground truth of a recording (an `.mcap` file or a rosbag2 folder of them), in file order.
+/// The ground truth of a recording (any the replay reads: MCAP, rosbag2), in playback order.
 /// Empty when the recording has no ground-truth channel. A damaged record ends the reading of its
 /// file, as it ends the replay; what came before it is kept.
 pub fn read_truth(path: &Path) -> Result<Vec<TruthFrame>, TruthError> {
-    let files = crate::sources::mcap::recording_files(path).map_err(|e| TruthError::Format {
+    use crate::sources::recording::{for_each_message, recording_files};
+    let format = |e: crate::sources::recording::RecordingError| TruthError::Format {
         path: path.to_path_buf(),
         message: e.to_string(),
-    })?;
+    };
     let mut frames = Vec::new();
-    for file in files {
-        let handle = std::fs::File::open(&file).map_err(|source| TruthError::Io {
-            path: file.clone(),
-            source,
-        })?;
-        // SAFETY: read-only map of a file this process does not write (as in the replay source).
-        let mapped = unsafe { memmap2::Mmap::map(&handle) }.map_err(|source| TruthError::Io {
-            path: file.clone(),
-            source,
-        })?;
-        // The same bounded reading as the replay: only the sound prefix reaches the mcap crate.
-        let scanned = crate::sources::mcap::scan(&mapped).map_err(|message| TruthError::Format {
-            path: file.clone(),
-            message,
-        })?;
-        for message in crate::sources::mcap::messages(&mapped[..scanned.sound_bytes]) {
-            let Ok(message) = message else { break };
-            if &*message.topic != GROUND_TRUTH_TOPIC {
-                continue;
+    for file in recording_files(path).map_err(format)? {
+        let mut invalid = None;
+        // The same bounded reading as the replay; a damaged rest ends the file's truth.
+        for_each_message(&file, &[GROUND_TRUTH_TOPIC], |message| {
+            match serde_json::from_slice::<TruthFrame>(&message.data) {
+                Ok(frame) => frames.push(frame),
+                Err(e) => invalid = Some(e.to_string()),
             }
-            let frame: TruthFrame = serde_json::from_slice(&message.data).map_err(|e| TruthError::Message {
-                path: file.clone(),
+            invalid.is_none()
+        })
+        .map_err(format)?;
+        if let Some(message) = invalid {
+            return Err(TruthError::Message {
+                path: file.path,
                 index: frames.len(),
-                message: e.to_string(),
-            })?;
-            frames.push(frame);
+                message,
+            });
         }
     }
     Ok(frames)

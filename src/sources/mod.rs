@@ -1,5 +1,6 @@
-//! Sources of frames, each feeding one stream: files and folders (`files`), MCAP / rosbag2 replay
-//! (`mcap`), zenoh subscriptions (`zenoh`); `ros2` decodes the ROS 2 messages the last two carry.
+//! Sources of frames, each feeding one stream: files and folders (`files`), recordings replayed
+//! (`recording`: MCAP files and rosbag2 bags, read by `mcap` and `rosbag2`), zenoh subscriptions
+//! (`zenoh`); `ros2` decodes the ROS 2 messages recordings and subscriptions carry.
 //!
 //! A source hands its frames to an `Outlet`, its own bounded channel into the pipeline. The outlet
 //! applies the stream's policy: a live source never waits (when the pipeline is behind, the oldest
@@ -8,7 +9,9 @@
 
 pub mod files;
 pub mod mcap;
+pub mod recording;
 pub mod ros2;
+pub mod rosbag2;
 pub mod zenoh;
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -66,6 +69,20 @@ pub fn file_or_folder(path: &std::path::Path, extensions: &[&str]) -> std::io::R
         .collect();
     files.sort();
     Ok(files)
+}
+
+/// What a source checks before anything runs: that its files exist and hold what it reads (a
+/// zenoh source is checked when it subscribes). A line saying what it found, or why it cannot start.
+pub fn check(source: &crate::config::SourceSettings) -> Result<String, String> {
+    use crate::config::SourceKind;
+    let path = source.path.as_deref().unwrap_or(std::path::Path::new(""));
+    match source.kind {
+        SourceKind::Files => files::list_files(path)
+            .map(|files| format!("{} point-cloud file(s)", files.len()))
+            .map_err(|e| e.to_string()),
+        SourceKind::Mcap => recording::check(source).map_err(|e| e.to_string()),
+        SourceKind::Zenoh => Ok(format!("zenoh key {}", source.key.as_deref().unwrap_or(""))),
+    }
 }
 
 pub fn unix_now_ns() -> u64 {
@@ -210,14 +227,13 @@ impl Outlet {
     }
 }
 
-/// One replay source per input, named after its file stem (made unique): MCAP files and rosbag2
-/// folders replay their point clouds, other files and folders are point-cloud files. `speed` as in
+/// One replay source per input, named after its file stem (made unique): MCAP and rosbag2 files
+/// and folders replay their point clouds, other files and folders are point-cloud files. `speed` as in
 /// `[[source]] speed` (0 = as fast as possible).
 pub fn replay_sources(inputs: &[std::path::PathBuf], speed: f64) -> Result<Vec<crate::config::SourceSettings>, String> {
     let mut sources: Vec<crate::config::SourceSettings> = Vec::new();
     for input in inputs {
-        let is_recording =
-            input.extension().is_some_and(|e| e == "mcap") || (input.is_dir() && mcap::recording_files(input).is_ok());
+        let is_recording = recording::is_recording(input);
         let stem = input
             .file_stem()
             .and_then(|s| s.to_str())

@@ -1,5 +1,6 @@
 //! How the running node treats its inputs: bad files among good ones, depth images from a
-//! recording, the live drop-oldest policy, CBOR output, and SIGINT on the real binary.
+//! recording, the live drop-oldest policy, CBOR output, SIGINT on the real binary, and the exit
+//! status when a source cannot start or every input fails.
 
 use std::io::Write;
 use std::sync::atomic::AtomicBool;
@@ -258,4 +259,111 @@ fn sigint_drains_and_the_binary_exits_zero() {
     let (received, published) = (numbers[0], numbers[1]);
     assert_eq!(received, published, "{row}");
     assert_eq!(lines() as u64, published);
+}
+
+/// Runs the binary with `args` and a config of `sources` (TOML), JSON lines off; its exit and output.
+fn node_with_sources(command: &str, sources: &str) -> (std::process::ExitStatus, String, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("node.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[model]\nbundle = {:?}\nthreads = 1\n[pipeline]\nsummary_seconds = 0.0\n[publish]\nzenoh = false\n{sources}",
+            shipped_bundle().display().to_string()
+        ),
+    )
+    .unwrap();
+    let mut node = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"));
+    node.arg(command);
+    if command != "check-config" {
+        node.arg("--config");
+    }
+    let output = node.arg(&config).output().unwrap();
+    (
+        output.status,
+        String::from_utf8_lossy(&output.stdout).into_owned(),
+        String::from_utf8_lossy(&output.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn a_source_that_cannot_start_fails_the_run_and_the_config_check_with_its_reason() {
+    let meshes = repo().join("sim/samples/meshes").display().to_string();
+    let sources = format!(
+        "[[source]]\nstream = \"good\"\nkind = \"files\"\npath = {meshes:?}\n\
+         [[source]]\nstream = \"gone\"\nkind = \"mcap\"\npath = \"/nonexistent/bag\"\n"
+    );
+    let (status, _, stderr) = node_with_sources("run", &sources);
+    assert!(!status.success(), "{stderr}");
+    assert!(
+        stderr.contains("source 'gone' cannot start") && stderr.contains("/nonexistent/bag"),
+        "{stderr}"
+    );
+    let (status, stdout, stderr) = node_with_sources("check-config", &sources);
+    assert!(!status.success());
+    assert!(stdout.contains("source 'good': 6 point-cloud file(s)"), "{stdout}");
+    assert!(stderr.contains("gone"), "{stderr}");
+    // A folder that holds nothing the node reads fails as clearly.
+    let empty = tempfile::tempdir().unwrap();
+    let (status, _, stderr) = node_with_sources(
+        "run",
+        &format!(
+            "[[source]]\nstream = \"e\"\nkind = \"mcap\"\npath = {:?}\n",
+            empty.path().display().to_string()
+        ),
+    );
+    assert!(
+        !status.success() && stderr.contains("folder holds no recording"),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn an_optional_source_that_cannot_start_is_left_out_and_listed() {
+    let meshes = repo().join("sim/samples/meshes").display().to_string();
+    let (status, stdout, stderr) = node_with_sources(
+        "run",
+        &format!(
+            "[[source]]\nstream = \"good\"\nkind = \"files\"\npath = {meshes:?}\n\
+             [[source]]\nstream = \"gone\"\nkind = \"files\"\npath = \"/nonexistent\"\noptional = true\n"
+        ),
+    );
+    assert!(status.success(), "{stderr}");
+    assert!(
+        stdout.contains("gone") && stdout.contains("(optional) cannot start"),
+        "{stdout}"
+    );
+    let row = stdout
+        .lines()
+        .find(|l| l.trim_start().starts_with("good "))
+        .expect("a summary row");
+    assert!(row.contains("6 published"), "{row}");
+    // With no source left, the run fails.
+    let (status, _, stderr) = node_with_sources(
+        "run",
+        "[[source]]\nstream = \"gone\"\nkind = \"files\"\npath = \"/nonexistent\"\noptional = true\n",
+    );
+    assert!(
+        !status.success() && stderr.contains("no source could start"),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn a_replay_whose_every_input_failed_exits_non_zero() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.ply");
+    std::fs::write(&bad, "ply\nformat ascii 1.0\nelement vertex 5\nend_header\n").unwrap();
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
+        .args(["-q", "replay", "--no-baseline", "--bundle"])
+        .arg(shipped_bundle())
+        .arg(&bad)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("every input failed") && stderr.contains("1 by source"),
+        "{stderr}"
+    );
 }
