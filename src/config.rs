@@ -12,6 +12,8 @@ use crate::cloud::Unit;
 use crate::prepare::Sampling;
 // The track stage owns its settings; they are re-exported here with the rest of the config.
 pub use crate::track::{ChangeDetector, HeadingMode, Smoothing, TrackSettings};
+// So does each sink.
+pub use crate::publish::Ros2Settings;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
@@ -206,6 +208,8 @@ pub struct PublishSettings {
     pub format: Format,
     /// Also write one JSON line per state: a file path, or "-" for stdout.
     pub jsonl: Option<String>,
+    /// The node as a ROS 2 node over rmw_zenoh (`[publish.ros2]`).
+    pub ros2: Ros2Settings,
 }
 
 impl Default for PublishSettings {
@@ -214,6 +218,7 @@ impl Default for PublishSettings {
             zenoh: true,
             format: Format::Json,
             jsonl: None,
+            ros2: Ros2Settings::default(),
         }
     }
 }
@@ -443,6 +448,7 @@ impl Config {
             return Err("prepare.outliers: neighbours, std_ratio and radius_m must be positive".into());
         }
         self.track.validate()?;
+        self.publish.ros2.validate()?;
         if !matches!(self.zenoh.mode.as_str(), "peer" | "client") {
             return Err(format!(
                 "zenoh.mode '{}' must be \"peer\" or \"client\"",

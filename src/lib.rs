@@ -4,7 +4,8 @@
 //! Stages (see ARCHITECTURE.md): `sources` (files, recordings, network) -> `prepare` (units,
 //! gravity frame, crop, ground, outliers, centring, scaling, subsampling to N_p) -> `runtime`
 //! (ONNX Runtime encoder of a checked `bundle`) -> `track` (shape fusion, identity changes, pose
-//! smoothing) -> `publish` (zenoh, JSON lines). `pipeline` joins them; `config` describes a run.
+//! smoothing) -> `publish` (sinks: zenoh, JSON lines, ROS 2). `pipeline` joins them; `config`
+//! describes a run; `ros2` holds ROS 2's wire conventions over zenoh.
 
 pub mod benchmark;
 pub mod bundle;
@@ -14,6 +15,7 @@ pub mod evaluate;
 pub mod pipeline;
 pub mod prepare;
 pub mod publish;
+pub mod ros2;
 pub mod runtime;
 pub mod sources;
 pub mod state;

@@ -631,7 +631,10 @@ fn starting_config(path: Option<PathBuf>, bundle: Option<PathBuf>) -> Result<Con
 
 fn run_pipeline(config: &Config, options: RunOptions, live_summary: bool) -> Result<RunSummary> {
     let bundle = Bundle::load(&config.model.bundle)?;
-    let session = if config.publish.zenoh || config.sources.iter().any(|s| s.kind == SourceKind::Zenoh) {
+    let session = if config.publish.zenoh
+        || config.publish.ros2.enabled
+        || config.sources.iter().any(|s| s.kind == SourceKind::Zenoh)
+    {
         let session = open_session(config)?;
         log::info!(
             "zenoh {} session {} up; publishing on {}",

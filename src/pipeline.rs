@@ -319,7 +319,7 @@ pub fn run(
             Box::new(move || track(done_rx, publish_tx, &config, &stats)),
         )?);
     }
-    let mut publisher = Publisher::new(config, session.clone(), options.lossless_publish)?;
+    let mut publisher = Publisher::new(config, bundle, session.clone(), options.lossless_publish)?;
 
     // Node-level zenoh presence: a liveliness token and the status queryable.
     let mut presence = None;

@@ -249,3 +249,78 @@ impl Encoder {
             .collect())
     }
 }
+
+/// One ONNX Runtime session of a bundle's decoder: the canonical shape a pose code and a shape
+/// code describe (the ROS 2 markers draw it). One thread; it runs off the pipeline's hot path.
+pub struct ShapeDecoder {
+    session: Session,
+    file: PathBuf,
+    z_r: usize,
+}
+
+impl ShapeDecoder {
+    pub fn load(bundle: &Bundle, library: Option<&Path>) -> Result<Self, RuntimeError> {
+        let environment = environment(library)?;
+        let file = bundle.path("decoder.onnx");
+        let session_error = |e: ort::Error| RuntimeError::Session {
+            file: file.clone(),
+            message: e.to_string(),
+        };
+        let session = Session::builder(environment)
+            .map_err(session_error)?
+            .with_intra_threads(1)
+            .map_err(|e| session_error(e.into()))?
+            .with_inter_threads(1)
+            .map_err(|e| session_error(e.into()))?
+            .commit_from_file(&file)
+            .map_err(session_error)?;
+        if !session.outputs().iter().any(|o| o.name() == "canonical_points") {
+            return Err(RuntimeError::MissingOutput {
+                file: file.clone(),
+                name: "canonical_points".into(),
+                found: session
+                    .outputs()
+                    .iter()
+                    .map(|o| o.name().to_string())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            });
+        }
+        Ok(Self {
+            session,
+            file,
+            z_r: bundle.manifest.sizes.z_r,
+        })
+    }
+
+    pub fn file(&self) -> &Path {
+        &self.file
+    }
+
+    /// The canonical points (model units, canonical frame) of one (z_E, z_I); z_R at its prior
+    /// mean (the canonical shape does not depend on it).
+    pub fn decode(&mut self, z_e: &[f32], z_i: &[f32]) -> Result<Vec<[f32; 3]>, RuntimeError> {
+        let tensor = |values: Vec<f32>| {
+            let n = values.len();
+            Tensor::from_array(([1, n], values)).map_err(|e| RuntimeError::Run(e.to_string()))
+        };
+        let outputs = self
+            .session
+            .run(ort::inputs![
+                "z_E" => tensor(z_e.to_vec())?,
+                "z_I" => tensor(z_i.to_vec())?,
+                "z_R" => tensor(vec![0.0; self.z_r])?,
+            ])
+            .map_err(|e| RuntimeError::Run(e.to_string()))?;
+        let (_, values) = outputs["canonical_points"]
+            .try_extract_tensor::<f32>()
+            .map_err(|e| RuntimeError::Run(format!("output canonical_points: {e}")))?;
+        if values.len() % 3 != 0 {
+            return Err(RuntimeError::Run(format!(
+                "canonical_points has {} values, not points of 3",
+                values.len()
+            )));
+        }
+        Ok(values.chunks(3).map(|p| [p[0], p[1], p[2]]).collect())
+    }
+}

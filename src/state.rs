@@ -142,3 +142,17 @@ pub enum Output {
     State(Box<State>),
     Rejected(Rejected),
 }
+
+impl State {
+    /// The identity event this state carries, as published on its own (`.../event`).
+    pub fn event_message(&self) -> Option<Event> {
+        self.event.as_ref().map(|event| Event {
+            schema: EVENT_SCHEMA.into(),
+            node: self.node.clone(),
+            stream: self.stream.clone(),
+            sequence: self.sequence,
+            stamps: self.stamps.clone(),
+            event: event.clone(),
+        })
+    }
+}

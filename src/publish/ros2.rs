@@ -1,0 +1,509 @@
+//! The ROS 2 sink: the node as a ROS 2 node over rmw_zenoh, so that `ros2 node list`,
+//! `ros2 topic echo` and rviz2 see it without a bridge. Per stream, under the node's namespace:
+//!
+//! | topic | type | what |
+//! |---|---|---|
+//! | `<ns>/<stream>/pose` | geometry_msgs/msg/PoseStamped | the object's centre and filtered rotation in the gravity frame |
+//! | `/tf` | tf2_msgs/msg/TFMessage | gravity frame -> `<object_frame_prefix><stream>` |
+//! | `<ns>/<stream>/markers` | visualization_msgs/msg/MarkerArray | identity text, heading arrow, decoded canonical shape |
+//! | `<ns>/<stream>/z_e`, `.../z_i` | std_msgs/msg/Float32MultiArray | filtered pose code, fused shape code |
+//! | `<ns>/<stream>/state`, `.../events`, `.../rejected` | std_msgs/msg/String | the `gdvae.state/1` JSON, identity events, rejections |
+//!
+//! Every publisher has its liveliness token (and the node its own), data go on the exact key a ROS 2
+//! subscriber of the type uses, each sample with rmw_zenoh's attachment; tokens are withdrawn when
+//! the sink is dropped (shutdown). The decoded shape comes from the bundle's `decoder.onnx` on a
+//! thread of its own, at most `shape_rate_hz` per stream: never on the pipeline's hot path.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+use zenoh::qos::CongestionControl;
+use zenoh::{Session, Wait};
+
+use super::{PublishError, Sink};
+use crate::bundle::Bundle;
+use crate::config::Config;
+use crate::ros2::graph::{self, EntityKind, GraphNode, MessageType, Qos};
+use crate::ros2::msg::{self, Header, Marker, Pose};
+use crate::state::{Output, State};
+
+/// `[publish.ros2]`: the node in a ROS 2 graph.
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Ros2Settings {
+    /// Publish to ROS 2 (rmw_zenoh). Join a graph by connecting `[zenoh]` to its router
+    /// (`rmw_zenohd`, `tcp/localhost:7447`).
+    pub enabled: bool,
+    /// ROS_DOMAIN_ID.
+    pub domain_id: u32,
+    /// The node's namespace; its topics are `<namespace>/<stream>/...`.
+    pub namespace: String,
+    pub node_name: String,
+    /// The security enclave ("/" unless SROS 2 is used).
+    pub enclave: String,
+    /// The gravity-aligned frame poses are given in (the parent of every object frame on /tf).
+    pub frame_id: String,
+    /// An object's frame on /tf is this prefix followed by its stream name.
+    pub object_frame_prefix: String,
+    /// QoS of the data topics as advertised to the graph: reliable (else best effort), keep last
+    /// `depth`, volatile. (On the wire, live runs drop under congestion, replays block.)
+    pub reliable: bool,
+    pub depth: usize,
+    /// Also publish on /tf (reliable, keep last 100, as tf2 broadcasters do).
+    pub tf: bool,
+    /// Publish markers for rviz2.
+    pub markers: bool,
+    /// How often per stream the decoded canonical shape is refreshed (Hz; 0: no shape marker).
+    pub shape_rate_hz: f64,
+}
+
+impl Default for Ros2Settings {
+    fn default() -> Self {
+        Self {
+            enabled: false,
+            domain_id: 0,
+            namespace: "/gdvae".into(),
+            node_name: "gdvae_node".into(),
+            enclave: "/".into(),
+            frame_id: "gravity".into(),
+            object_frame_prefix: String::new(),
+            reliable: true,
+            depth: 10,
+            tf: true,
+            markers: true,
+            shape_rate_hz: 1.0,
+        }
+    }
+}
+
+/// A ROS 2 name segment: a letter or underscore, then letters, digits, underscores.
+fn is_name(segment: &str) -> bool {
+    let mut chars = segment.chars();
+    chars.next().is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+        && chars.all(|c| c.is_ascii_alphanumeric() || c == '_')
+}
+
+impl Ros2Settings {
+    /// Checks every value; the message names the key.
+    pub fn validate(&self) -> Result<(), String> {
+        let namespace_ok =
+            self.namespace == "/" || (self.namespace.starts_with('/') && self.namespace[1..].split('/').all(is_name));
+        if !namespace_ok {
+            return Err(format!(
+                "publish.ros2.namespace '{}' must be \"/\" or absolute, like \"/robot/gdvae\" (letters, digits, underscores)",
+                self.namespace
+            ));
+        }
+        if !is_name(&self.node_name) {
+            return Err(format!(
+                "publish.ros2.node_name '{}' must be a ROS 2 name (letters, digits, underscores)",
+                self.node_name
+            ));
+        }
+        if !self.enclave.starts_with('/') {
+            return Err(format!("publish.ros2.enclave '{}' must start with '/'", self.enclave));
+        }
+        if self.frame_id.is_empty() {
+            return Err("publish.ros2.frame_id must not be empty".into());
+        }
+        if self.domain_id > 232 {
+            return Err(format!(
+                "publish.ros2.domain_id {} must be within 0..=232",
+                self.domain_id
+            ));
+        }
+        if self.depth == 0 {
+            return Err("publish.ros2.depth must be at least 1".into());
+        }
+        if !(self.shape_rate_hz >= 0.0 && self.shape_rate_hz.is_finite()) {
+            return Err("publish.ros2.shape_rate_hz must be finite and >= 0".into());
+        }
+        Ok(())
+    }
+
+    /// The topic a stream's `what` is published on.
+    pub fn topic(&self, stream: &str, what: &str) -> String {
+        format!("{}/{stream}/{what}", self.namespace.trim_end_matches('/'))
+    }
+}
+
+/// One ROS 2 publisher: its zenoh publisher, liveliness token, GID and sequence numbers.
+struct Topic {
+    publisher: zenoh::pubsub::Publisher<'static>,
+    _token: zenoh::liveliness::LivelinessToken,
+    gid: [u8; 16],
+    sequence: i64,
+}
+
+impl Topic {
+    fn put(&mut self, payload: Vec<u8>) -> Result<(), PublishError> {
+        self.sequence += 1;
+        let now = crate::sources::unix_now_ns() as i64;
+        self.publisher
+            .put(payload)
+            .attachment(graph::attachment(self.sequence, now, &self.gid).to_vec())
+            .wait()
+            .map_err(|e| PublishError::Ros2(e.to_string()))
+    }
+}
+
+/// The topics of one stream.
+struct StreamTopics {
+    pose: Topic,
+    markers: Option<Topic>,
+    z_e: Topic,
+    z_i: Topic,
+    state: Topic,
+    events: Topic,
+    rejected: Topic,
+    /// When the decoded shape was last asked for.
+    shape_asked: Option<Instant>,
+}
+
+pub struct Ros2Sink {
+    settings: Ros2Settings,
+    node: GraphNode,
+    session: Session,
+    congestion: CongestionControl,
+    /// Ids are handed out in the session as rmw_zenoh does: the node first, then each entity.
+    next_id: u32,
+    _node_token: zenoh::liveliness::LivelinessToken,
+    tf: Option<Topic>,
+    streams: HashMap<String, StreamTopics>,
+    shapes: Option<ShapeWorker>,
+}
+
+impl Ros2Sink {
+    pub fn new(config: &Config, bundle: &Bundle, session: Session, lossless: bool) -> Result<Self, PublishError> {
+        let settings = config.publish.ros2.clone();
+        let node = GraphNode {
+            domain: settings.domain_id,
+            zid: session.zid().to_string(),
+            id: 0,
+            enclave: settings.enclave.clone(),
+            namespace: settings.namespace.clone(),
+            name: settings.node_name.clone(),
+        };
+        let node_token = session
+            .liveliness()
+            .declare_token(node.node_token())
+            .wait()
+            .map_err(|e| PublishError::Ros2(format!("declaring the node's liveliness token: {e}")))?;
+        let shapes = if settings.markers && settings.shape_rate_hz > 0.0 {
+            Some(ShapeWorker::start(bundle, config.model.onnxruntime.as_deref())?)
+        } else {
+            None
+        };
+        log::info!(
+            "ROS 2: node {}/{} in domain {} (rmw_zenoh conventions of Jazzy, Kilted, Rolling)",
+            settings.namespace.trim_end_matches('/'),
+            settings.node_name,
+            settings.domain_id
+        );
+        let mut sink = Self {
+            settings,
+            node,
+            session,
+            congestion: if lossless {
+                CongestionControl::Block
+            } else {
+                CongestionControl::Drop
+            },
+            next_id: 1,
+            _node_token: node_token,
+            tf: None,
+            streams: HashMap::new(),
+            shapes,
+        };
+        if sink.settings.tf {
+            let qos = Qos {
+                reliable: true,
+                transient_local: false,
+                depth: 100,
+            };
+            sink.tf = Some(sink.declare("/tf", &msg::TF_MESSAGE, qos)?);
+        }
+        Ok(sink)
+    }
+
+    fn declare(&mut self, topic: &str, message: &MessageType, qos: Qos) -> Result<Topic, PublishError> {
+        let id = self.next_id;
+        self.next_id += 1;
+        let token_key = self.node.entity_token(EntityKind::Publisher, id, topic, message, &qos);
+        let error = |e: zenoh::Error| PublishError::Ros2(format!("declaring {topic}: {e}"));
+        let token = self
+            .session
+            .liveliness()
+            .declare_token(token_key.clone())
+            .wait()
+            .map_err(error)?;
+        let publisher = self
+            .session
+            .declare_publisher(graph::topic_key(self.node.domain, topic, message))
+            .congestion_control(self.congestion)
+            .wait()
+            .map_err(error)?;
+        Ok(Topic {
+            publisher,
+            _token: token,
+            gid: graph::gid(&token_key),
+            sequence: 0,
+        })
+    }
+
+    fn stream(&mut self, stream: &str) -> Result<&mut StreamTopics, PublishError> {
+        if !self.streams.contains_key(stream) {
+            let qos = Qos {
+                reliable: self.settings.reliable,
+                transient_local: false,
+                depth: self.settings.depth,
+            };
+            let topic = |what: &str| self.settings.topic(stream, what);
+            let (pose, markers, z_e, z_i, state, events, rejected) = (
+                topic("pose"),
+                topic("markers"),
+                topic("z_e"),
+                topic("z_i"),
+                topic("state"),
+                topic("events"),
+                topic("rejected"),
+            );
+            let topics = StreamTopics {
+                pose: self.declare(&pose, &msg::POSE_STAMPED, qos)?,
+                markers: if self.settings.markers {
+                    Some(self.declare(&markers, &msg::MARKER_ARRAY, qos)?)
+                } else {
+                    None
+                },
+                z_e: self.declare(&z_e, &msg::FLOAT32_MULTI_ARRAY, qos)?,
+                z_i: self.declare(&z_i, &msg::FLOAT32_MULTI_ARRAY, qos)?,
+                state: self.declare(&state, &msg::STRING, qos)?,
+                events: self.declare(&events, &msg::STRING, qos)?,
+                rejected: self.declare(&rejected, &msg::STRING, qos)?,
+                shape_asked: None,
+            };
+            log::info!(
+                "ROS 2: publishing {}/*",
+                self.settings.topic(stream, "").trim_end_matches('/')
+            );
+            self.streams.insert(stream.to_string(), topics);
+        }
+        Ok(self.streams.get_mut(stream).expect("inserted above"))
+    }
+
+    fn publish_state(&mut self, state: &State) -> Result<(), PublishError> {
+        let stamp_ns = state.stamps.sensor_ns.unwrap_or(state.stamps.ingest_ns);
+        let frame_id = self.settings.frame_id.clone();
+        let header = Header {
+            stamp_ns,
+            frame_id: &frame_id,
+        };
+        let [w, x, y, z] = state.filtered.q.map(f64::from);
+        let pose = Pose {
+            position: state.centre_m.map(f64::from),
+            orientation: [x, y, z, w],
+        };
+        let shape_rate = self.settings.shape_rate_hz;
+        let child = format!("{}{}", self.settings.object_frame_prefix, state.stream);
+        if let Some(tf) = self.tf.as_mut() {
+            tf.put(msg::tf_message(&[(header, &child, pose)]))?;
+        }
+        let shape = self
+            .shapes
+            .as_ref()
+            .map(|s| (s.latest(&state.stream), s.requests.clone()));
+        let topics = self.stream(&state.stream)?;
+        topics.pose.put(msg::pose_stamped(&header, &pose))?;
+        topics.z_e.put(msg::float32_multi_array("z_e", &state.filtered.z_e))?;
+        topics.z_i.put(msg::float32_multi_array("z_i", &state.shape.z_i))?;
+        let json = serde_json::to_string(state).map_err(|e| PublishError::Encode(e.to_string()))?;
+        topics.state.put(msg::string(&json))?;
+        if let Some(event) = state.event_message() {
+            let json = serde_json::to_string(&event).map_err(|e| PublishError::Encode(e.to_string()))?;
+            topics.events.put(msg::string(&json))?;
+        }
+        if let Some(markers) = topics.markers.as_mut() {
+            let points = match shape {
+                Some((latest, requests)) => {
+                    let due = topics
+                        .shape_asked
+                        .is_none_or(|t| t.elapsed().as_secs_f64() * shape_rate >= 1.0);
+                    if due {
+                        // Dropped when the decoder is still busy: the next state asks again.
+                        let request = ShapeRequest {
+                            stream: state.stream.clone(),
+                            z_e: state.filtered.z_e.clone(),
+                            z_i: state.shape.z_i.clone(),
+                        };
+                        if requests.try_send(request).is_ok() {
+                            topics.shape_asked = Some(Instant::now());
+                        }
+                    }
+                    latest
+                }
+                None => None,
+            };
+            markers.put(marker_array(
+                state,
+                &header,
+                &pose,
+                points.as_deref().map(Vec::as_slice),
+            ))?;
+        }
+        Ok(())
+    }
+}
+
+/// Identity text above the object, a heading arrow, and the decoded canonical shape at the pose.
+fn marker_array(state: &State, header: &Header, pose: &Pose, shape: Option<&[[f32; 3]]>) -> Vec<u8> {
+    const LIFETIME_NS: u64 = 1_000_000_000;
+    let text = format!(
+        "{} identity {} ({:.0} %){}",
+        state.stream,
+        state.shape.identity,
+        100.0 * state.shape.confidence,
+        if state.shape.inlier { "" } else { " outlier" }
+    );
+    let half_yaw = f64::from(state.filtered.yaw) / 2.0;
+    let heading = Pose {
+        position: pose.position,
+        orientation: [0.0, 0.0, half_yaw.sin(), half_yaw.cos()],
+    };
+    let above = Pose {
+        position: [pose.position[0], pose.position[1], pose.position[2] + 0.6],
+        orientation: [0.0, 0.0, 0.0, 1.0],
+    };
+    let confidence = state.shape.confidence.clamp(0.0, 1.0);
+    let mut markers = vec![
+        Marker {
+            header: *header,
+            namespace: "identity",
+            id: 0,
+            kind: msg::MARKER_TEXT,
+            pose: above,
+            scale: [0.0, 0.0, 0.12],
+            color: [1.0, 1.0, 1.0, 1.0],
+            lifetime_ns: LIFETIME_NS,
+            points: &[],
+            text: &text,
+        },
+        Marker {
+            header: *header,
+            namespace: "heading",
+            id: 1,
+            kind: msg::MARKER_ARROW,
+            pose: heading,
+            scale: [0.6, 0.05, 0.05],
+            color: [1.0 - confidence, confidence, 0.2, 1.0],
+            lifetime_ns: LIFETIME_NS,
+            points: &[],
+            text: "",
+        },
+    ];
+    if let Some(points) = shape {
+        markers.push(Marker {
+            header: *header,
+            namespace: "shape",
+            id: 2,
+            kind: msg::MARKER_POINTS,
+            pose: *pose,
+            scale: [0.02, 0.02, 0.0],
+            color: [0.2, 0.6, 1.0, 1.0],
+            lifetime_ns: LIFETIME_NS,
+            points,
+            text: "",
+        });
+    }
+    msg::marker_array(&markers)
+}
+
+impl Sink for Ros2Sink {
+    fn publish(&mut self, output: &Output) -> Result<(), PublishError> {
+        match output {
+            Output::State(state) => self.publish_state(state),
+            Output::Rejected(rejected) => {
+                let json = serde_json::to_string(rejected).map_err(|e| PublishError::Encode(e.to_string()))?;
+                self.stream(&rejected.stream)?.rejected.put(msg::string(&json))
+            }
+        }
+    }
+}
+
+struct ShapeRequest {
+    stream: String,
+    z_e: Vec<f32>,
+    z_i: Vec<f32>,
+}
+
+type Shapes = Arc<Mutex<HashMap<String, Arc<Vec<[f32; 3]>>>>>;
+
+/// The decoder on its own thread: requests in (at most one waiting), the latest canonical shape
+/// per stream out (metres).
+struct ShapeWorker {
+    requests: crossbeam_channel::Sender<ShapeRequest>,
+    shapes: Shapes,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl ShapeWorker {
+    fn start(bundle: &Bundle, library: Option<&std::path::Path>) -> Result<Self, PublishError> {
+        let mut decoder = crate::runtime::ShapeDecoder::load(bundle, library)
+            .map_err(|e| PublishError::Ros2(format!("the shape markers need the bundle's decoder: {e}")))?;
+        let metres_per_unit = 1.0 / bundle.manifest.units.model_units_per_metre as f32;
+        let (requests, received) = crossbeam_channel::bounded::<ShapeRequest>(1);
+        let shapes: Shapes = Arc::default();
+        let thread = {
+            let shapes = shapes.clone();
+            std::thread::Builder::new()
+                .name("ros2:shapes".into())
+                .spawn(move || {
+                    let mut failures = 0u64;
+                    for request in received {
+                        match decoder.decode(&request.z_e, &request.z_i) {
+                            Ok(points) => {
+                                let points: Vec<[f32; 3]> =
+                                    points.iter().map(|p| p.map(|v| v * metres_per_unit)).collect();
+                                shapes
+                                    .lock()
+                                    .unwrap_or_else(|e| e.into_inner())
+                                    .insert(request.stream, Arc::new(points));
+                            }
+                            Err(e) => {
+                                failures += 1;
+                                if failures <= 3 || failures % 100 == 0 {
+                                    log::warn!("ROS 2 shape marker: decoding failed ({failures} so far): {e}");
+                                }
+                            }
+                        }
+                    }
+                })
+                .map_err(|e| PublishError::Ros2(e.to_string()))?
+        };
+        Ok(Self {
+            requests,
+            shapes,
+            thread: Some(thread),
+        })
+    }
+
+    fn latest(&self, stream: &str) -> Option<Arc<Vec<[f32; 3]>>> {
+        self.shapes
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(stream)
+            .cloned()
+    }
+}
+
+impl Drop for ShapeWorker {
+    fn drop(&mut self) {
+        // Closing the channel ends the thread after the request it is on.
+        let (closed, _) = crossbeam_channel::bounded(0);
+        drop(std::mem::replace(&mut self.requests, closed));
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}

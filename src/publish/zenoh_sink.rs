@@ -1,0 +1,76 @@
+//! The zenoh sink: states, rejections and identity events as JSON or CBOR on the node's own keys,
+//! `<prefix>/<node>/<stream>/state`, `.../rejected`, `.../event` (schema `gdvae.state/1`). A zenoh
+//! publisher is declared per key on first use.
+
+use std::collections::HashMap;
+
+use zenoh::bytes::Encoding;
+use zenoh::qos::CongestionControl;
+use zenoh::{Session, Wait};
+
+use super::{encode, PublishError, Sink};
+use crate::config::{Config, Format};
+use crate::state::Output;
+
+pub struct ZenohSink {
+    prefix: String,
+    format: Format,
+    session: Session,
+    congestion: CongestionControl,
+    publishers: HashMap<String, zenoh::pubsub::Publisher<'static>>,
+}
+
+impl ZenohSink {
+    /// `lossless`: block on congestion (replay) instead of dropping (live).
+    pub fn new(config: &Config, session: Session, lossless: bool) -> Self {
+        Self {
+            prefix: format!("{}/{}", config.node.prefix, config.node.name),
+            format: config.publish.format,
+            session,
+            congestion: if lossless {
+                CongestionControl::Block
+            } else {
+                CongestionControl::Drop
+            },
+            publishers: HashMap::new(),
+        }
+    }
+
+    fn send<T: serde::Serialize>(&mut self, stream: &str, kind: &str, message: &T) -> Result<(), PublishError> {
+        let key = format!("{}/{stream}/{kind}", self.prefix);
+        if !self.publishers.contains_key(&key) {
+            let encoding = match self.format {
+                Format::Json => Encoding::APPLICATION_JSON,
+                Format::Cbor => Encoding::APPLICATION_CBOR,
+            };
+            let publisher = self
+                .session
+                .declare_publisher(key.clone())
+                .encoding(encoding)
+                .congestion_control(self.congestion)
+                .wait()
+                .map_err(|e| PublishError::Zenoh(e.to_string()))?;
+            self.publishers.insert(key.clone(), publisher);
+        }
+        let payload = encode(self.format, message)?;
+        self.publishers[&key]
+            .put(payload)
+            .wait()
+            .map_err(|e| PublishError::Zenoh(e.to_string()))
+    }
+}
+
+impl Sink for ZenohSink {
+    fn publish(&mut self, output: &Output) -> Result<(), PublishError> {
+        match output {
+            Output::State(state) => {
+                self.send(&state.stream, "state", state.as_ref())?;
+                if let Some(event) = state.event_message() {
+                    self.send(&state.stream, "event", &event)?;
+                }
+                Ok(())
+            }
+            Output::Rejected(rejected) => self.send(&rejected.stream, "rejected", rejected),
+        }
+    }
+}

@@ -1,0 +1,227 @@
+"""The node as a ROS 2 node over rmw_zenoh, checked with independent tools and no ROS install:
+`eclipse-zenoh` (liveliness, exact keys, attachments, `zenoh.ext` serialisation), `rosbags`
+(Jazzy's message definitions, CDR and RIHS01 type hashes) and `xxhash` (publisher GIDs).
+
+The real `gdvae-node` binary replays the sample recording with `[publish.ros2]` on. Every
+liveliness token must parse by rmw_zenoh's rules (liveliness_utils.cpp); every data sample must
+arrive on the exact key a ROS 2 subscriber of its type uses, carry the 33-byte attachment with
+sequence numbers 1, 2, 3 ... and a constant GID, and deserialise with rosbags and re-serialise
+byte for byte; its values must equal the JSON state's; after SIGTERM every token is withdrawn."""
+
+import json
+import signal
+import struct
+import subprocess
+import time
+
+import xxhash
+import zenoh
+import zenoh.ext
+from rosbags.typesys import Stores, get_typestore
+
+from node_paths import NODE, ROOT, client, free_port
+
+STORE = get_typestore(Stores.ROS2_JAZZY)
+NAMESPACE = "/robot/gdvae"
+NODE_NAME = "edge_node"
+STREAM = "sample"
+DOMAIN = 3
+
+# What a ROS 2 user would subscribe to, and the type ros2 topic echo would use.
+TOPICS = {
+    f"{NAMESPACE}/{STREAM}/pose": "geometry_msgs/msg/PoseStamped",
+    f"{NAMESPACE}/{STREAM}/markers": "visualization_msgs/msg/MarkerArray",
+    f"{NAMESPACE}/{STREAM}/z_e": "std_msgs/msg/Float32MultiArray",
+    f"{NAMESPACE}/{STREAM}/z_i": "std_msgs/msg/Float32MultiArray",
+    f"{NAMESPACE}/{STREAM}/state": "std_msgs/msg/String",
+    "/tf": "tf2_msgs/msg/TFMessage",
+}
+
+
+def dds_name(msgtype):
+    package, _, name = msgtype.split("/")
+    return f"{package}::msg::dds_::{name}_"
+
+
+def ros_key(topic, msgtype):
+    """The key rmw_zenoh's subscriber of `msgtype` on `topic` subscribes to (TopicInfo)."""
+    return f"{DOMAIN}/{topic.strip('/')}/{dds_name(msgtype)}/{STORE.hash_rihs01(msgtype)}"
+
+
+def parse_token(key):
+    """A liveliness token parsed as rmw_zenoh's Entity::make does; raises on what it would reject."""
+    parts = key.split("/")
+    assert parts[0] == "@ros2_lv", key
+    assert len(parts) >= 9, f"fewer than 9 parts: {key}"
+    assert all(parts), f"an empty part: {key}"
+    entity = {"domain": int(parts[1]), "zid": parts[2], "nid": parts[3], "id": parts[4], "kind": parts[5],
+              "enclave": parts[6].replace("%", "/"), "namespace": parts[7].replace("%", "/"),
+              "node": parts[8].replace("%", "/")}
+    assert entity["kind"] in ("NN", "MP", "MS", "SS", "SC"), key
+    int(entity["nid"]), int(entity["id"])
+    int(entity["zid"], 16)
+    if entity["kind"] != "NN":
+        assert len(parts) >= 13, f"an entity token needs 13 parts: {key}"
+        entity.update(topic=parts[9].replace("%", "/"), type=parts[10], hash=parts[11], qos=parts[12])
+        # reliability:durability:history,depth:deadline_s,ns:lifespan_s,ns:liveliness,lease_s,ns
+        qos = parts[12].split(":")
+        assert len(qos) == 6, f"QoS needs 6 fields: {parts[12]}"
+        assert qos[0] in ("", "1", "2") and qos[1] in ("", "1", "2"), parts[12]
+        history, depth = qos[2].split(",")
+        assert history in ("", "1", "2") and (depth == "" or int(depth) > 0), parts[12]
+        assert len(qos[3].split(",")) == 2 and len(qos[4].split(",")) == 2, parts[12]
+        assert len(qos[5].split(",")) == 3, parts[12]
+    return entity
+
+
+def write_config(tmp_path, endpoint):
+    config = tmp_path / "node.toml"
+    config.write_text(f"""
+[node]
+name = "ros"
+[model]
+bundle = "{ROOT / 'models/bundles/cpu-gdvaepp'}"
+threads = 1
+[pipeline]
+summary_seconds = 0.0
+[prepare]
+sensor_to_gravity_rotation = [[0.0, 0.188847, -0.982006], [1.0, 0.0, 0.0], [0.0, -0.982006, -0.188847]]
+sensor_to_gravity_translation = [2.6, 0.0, 1.3]
+crop = [-1.2, -1.2, 0.02, 1.2, 1.2, 2.5]
+cluster_m = 0.06
+[publish]
+zenoh = false
+[publish.ros2]
+enabled = true
+domain_id = {DOMAIN}
+namespace = "{NAMESPACE}"
+node_name = "{NODE_NAME}"
+frame_id = "world"
+shape_rate_hz = 5.0
+[zenoh]
+listen = ["{endpoint}"]
+multicast_scouting = false
+[[source]]
+stream = "{STREAM}"
+kind = "mcap"
+path = "{ROOT / 'sim/samples/walk_switch.mcap'}"
+repeat = true
+""")
+    return config
+
+
+def test_ros2_output_follows_rmw_zenoh_and_round_trips_through_rosbags(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    node = subprocess.Popen([NODE, "-q", "run", "--config", str(write_config(tmp_path, endpoint))],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    samples = {topic: [] for topic in TOPICS}
+    token_events = []
+    try:
+        with client(endpoint) as session:
+            # The node and its publishers, as `ros2 node list` / `ros2 topic list` find them.
+            deadline = time.monotonic() + 60
+            tokens = []
+            while time.monotonic() < deadline and len(tokens) < 1 + len(TOPICS):
+                tokens = [str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/**", timeout=2.0)
+                          if r.ok is not None]
+                time.sleep(0.2)
+            watcher = session.liveliness().declare_subscriber(
+                "@ros2_lv/**", lambda s: token_events.append((str(s.kind), str(s.key_expr))))
+            subscribers = [session.declare_subscriber(ros_key(topic, msgtype),
+                                                      lambda s, t=topic: samples[t].append(s))
+                           for topic, msgtype in TOPICS.items()]
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and min(len(v) for v in samples.values()) < 40:
+                time.sleep(0.05)
+            for s in subscribers:
+                s.undeclare()
+            node.send_signal(signal.SIGTERM)
+            out, err = node.communicate(timeout=30)
+            assert node.returncode == 0, err.decode()
+            time.sleep(1.0)
+            after = [str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/**", timeout=2.0)
+                     if r.ok is not None]
+            watcher.undeclare()
+    finally:
+        if node.poll() is None:
+            node.kill()
+
+    entities = [parse_token(t) for t in tokens]
+    nodes = [e for e in entities if e["kind"] == "NN"]
+    assert len(nodes) == 1 and nodes[0]["namespace"] == NAMESPACE and nodes[0]["node"] == NODE_NAME
+    assert nodes[0]["domain"] == DOMAIN and nodes[0]["enclave"] == "/"
+    publishers = {e["topic"]: e for e in entities if e["kind"] == "MP"}
+    for topic, msgtype in TOPICS.items():
+        publisher = publishers[topic]
+        assert publisher["type"] == dds_name(msgtype) and publisher["hash"] == STORE.hash_rihs01(msgtype)
+        assert publisher["zid"] == nodes[0]["zid"] and publisher["nid"] == nodes[0]["nid"]
+    assert publishers["/tf"]["qos"] == "::,100:,:,:,,", "tf2's broadcaster QoS: reliable, volatile, keep last 100"
+    ids = [e["id"] for e in entities]
+    assert len(set(ids)) == len(ids), "entity ids are unique in the session"
+
+    token_of = {e["topic"]: t for e, t in zip(entities, tokens) if e["kind"] == "MP"}
+    for topic, msgtype in TOPICS.items():
+        received = samples[topic]
+        assert len(received) >= 40, f"{topic}: {len(received)} samples"
+        sequences, gids = [], set()
+        for sample in received:
+            attachment = sample.attachment.to_bytes()
+            assert len(attachment) == 33, f"{topic}: attachment of {len(attachment)} bytes"
+            sequence, stamp = struct.unpack_from("<qq", attachment)
+            gid = attachment[17:]
+            # zenoh-ext's own serialiser gives exactly these bytes.
+            assert zenoh.ext.z_serialize((zenoh.ext.Int64(sequence), zenoh.ext.Int64(stamp), gid)).to_bytes() \
+                == attachment
+            assert abs(stamp / 1e9 - time.time()) < 120
+            sequences.append(sequence)
+            gids.add(gid)
+            payload = sample.payload.to_bytes()
+            message = STORE.deserialize_cdr(payload, msgtype)
+            assert bytes(STORE.serialize_cdr(message, msgtype)) == payload, f"{topic}: CDR round trip"
+        assert sequences == list(range(sequences[0], sequences[0] + len(sequences))), topic
+        assert len(gids) == 1, f"{topic}: one GID"
+        digest = xxhash.xxh3_128_intdigest(token_of[topic].encode())
+        expected = (digest & (2**64 - 1)).to_bytes(8, "little") + (digest >> 64).to_bytes(8, "little")
+        assert gids == {expected}, f"{topic}: GID is the XXH3-128 of its token"
+        assert str(received[0].encoding) == "zenoh/bytes", "rmw_zenoh sets no encoding"
+
+    # The values are the JSON state's, matched by header stamp.
+    states = {}
+    for sample in samples[f"{NAMESPACE}/{STREAM}/state"]:
+        state = json.loads(STORE.deserialize_cdr(sample.payload.to_bytes(), "std_msgs/msg/String").data)
+        states[state["stamps"]["sensor_ns"]] = state
+    stamp_ns = lambda h: h.stamp.sec * 1_000_000_000 + h.stamp.nanosec
+    matched = 0
+    for sample in samples[f"{NAMESPACE}/{STREAM}/pose"]:
+        pose = STORE.deserialize_cdr(sample.payload.to_bytes(), "geometry_msgs/msg/PoseStamped")
+        state = states.get(stamp_ns(pose.header))
+        if state is None:
+            continue
+        matched += 1
+        assert pose.header.frame_id == "world"
+        assert [pose.pose.position.x, pose.pose.position.y, pose.pose.position.z] == \
+            [float(v) for v in struct.unpack("<3f", struct.pack("<3f", *state["centre_m"]))]
+        w, x, y, z = state["filtered"]["q"]
+        o = pose.pose.orientation
+        assert [o.x, o.y, o.z, o.w] == [float(v) for v in struct.unpack("<4f", struct.pack("<4f", x, y, z, w))]
+    assert matched >= 20
+    z_e = [STORE.deserialize_cdr(s.payload.to_bytes(), "std_msgs/msg/Float32MultiArray")
+           for s in samples[f"{NAMESPACE}/{STREAM}/z_e"]]
+    assert all(len(m.data) == 10 and m.layout.dim[0].label == "z_e" for m in z_e)
+    tf = STORE.deserialize_cdr(samples["/tf"][-1].payload.to_bytes(), "tf2_msgs/msg/TFMessage")
+    assert tf.transforms[0].header.frame_id == "world" and tf.transforms[0].child_frame_id == STREAM
+    markers = [STORE.deserialize_cdr(s.payload.to_bytes(), "visualization_msgs/msg/MarkerArray")
+               for s in samples[f"{NAMESPACE}/{STREAM}/markers"]]
+    last = markers[-1].markers
+    assert last[0].type == 9 and "identity" in last[0].text
+    assert last[1].type == 0
+    shapes = [m.markers[2] for m in markers if len(m.markers) == 3]
+    assert shapes, "the decoded canonical shape appears"
+    assert shapes[-1].type == 8 and len(shapes[-1].points) == 256
+    extent = max(p.z for p in shapes[-1].points) - min(p.z for p in shapes[-1].points)
+    assert 0.2 < extent < 3.0, f"the decoded shape is in metres ({extent:.2f} m tall)"
+
+    # Withdrawn on shutdown: nothing of the node is left, and each token's removal was seen.
+    assert not [t for t in after if t.split("/")[2] == nodes[0]["zid"]], after
+    deleted = {key for kind, key in token_events if kind == "SampleKind.DELETE"}
+    assert set(tokens) <= deleted, set(tokens) - deleted
