@@ -257,6 +257,8 @@ pub enum SourceKind {
     Mcap,
     /// A zenoh subscription.
     Zenoh,
+    /// A ROS 2 topic by name, over rmw_zenoh.
+    Ros2,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
@@ -280,7 +282,7 @@ pub struct SourceSettings {
     #[serde(default)]
     pub path: Option<PathBuf>,
     /// MCAP: the PointCloud2 topic (default: the first PointCloud2 topic), or a depth Image topic
-    /// (its CameraInfo is `camera_info_topic`).
+    /// (its CameraInfo is `camera_info_topic`). ROS 2: the topic to subscribe to (required).
     #[serde(default)]
     pub topic: Option<String>,
     #[serde(default)]
@@ -297,6 +299,9 @@ pub struct SourceSettings {
     /// Start again at the end (a looping demo); a replay benchmark leaves it off.
     #[serde(default)]
     pub repeat: bool,
+    /// ROS 2: the domain (default: `[publish.ros2] domain_id`).
+    #[serde(default)]
+    pub domain_id: Option<u32>,
     /// Zenoh: key expression to subscribe to.
     #[serde(default)]
     pub key: Option<String>,
@@ -335,7 +340,12 @@ fn default_max_points() -> usize {
 impl SourceSettings {
     /// Live sources never block their sensor: when the pipeline is behind they drop the oldest frame.
     pub fn is_live(&self) -> bool {
-        self.kind == SourceKind::Zenoh
+        matches!(self.kind, SourceKind::Zenoh | SourceKind::Ros2)
+    }
+
+    /// Whether it subscribes on the zenoh session (rather than running a thread of its own).
+    pub fn is_subscription(&self) -> bool {
+        self.is_live()
     }
 }
 
@@ -471,6 +481,25 @@ impl Config {
                 }
                 SourceKind::Zenoh if s.key.as_deref().is_none_or(str::is_empty) => {
                     return Err(format!("{at}: a zenoh source needs `key`"))
+                }
+                SourceKind::Ros2 => {
+                    let topic = s.topic.as_deref().unwrap_or("");
+                    let names = |t: &str| {
+                        !t.is_empty()
+                            && t.trim_start_matches('/').split('/').all(|part| {
+                                part.chars().next().is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+                                    && part.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+                            })
+                    };
+                    if !names(topic) || !s.camera_info_topic.as_deref().is_none_or(names) {
+                        return Err(format!(
+                            "{at}: a ros2 source needs `topic`, a ROS 2 topic name like \"/camera/points\" \
+                             (letters, digits, underscores); got '{topic}'"
+                        ));
+                    }
+                    if s.domain_id.is_some_and(|d| d > 232) {
+                        return Err(format!("{at}: domain_id must be within 0..=232"));
+                    }
                 }
                 _ => {}
             }

@@ -10,7 +10,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use gdvae_node::bundle::Bundle;
 use gdvae_node::cloud::{Frame, PointCloud, Unit};
-use gdvae_node::config::{Config, Format, SourceKind};
+use gdvae_node::config::{Config, Format};
 use gdvae_node::evaluate::EvaluateOptions;
 use gdvae_node::pipeline::{self, RunOptions, RunSummary};
 use gdvae_node::prepare::{Preparer, Sampling};
@@ -631,21 +631,19 @@ fn starting_config(path: Option<PathBuf>, bundle: Option<PathBuf>) -> Result<Con
 
 fn run_pipeline(config: &Config, options: RunOptions, live_summary: bool) -> Result<RunSummary> {
     let bundle = Bundle::load(&config.model.bundle)?;
-    let session = if config.publish.zenoh
-        || config.publish.ros2.enabled
-        || config.sources.iter().any(|s| s.kind == SourceKind::Zenoh)
-    {
-        let session = open_session(config)?;
-        log::info!(
-            "zenoh {} session {} up; publishing on {}",
-            config.zenoh.mode,
-            session.zid(),
-            config.state_key("*")
-        );
-        Some(session)
-    } else {
-        None
-    };
+    let session =
+        if config.publish.zenoh || config.publish.ros2.enabled || config.sources.iter().any(|s| s.is_subscription()) {
+            let session = open_session(config)?;
+            log::info!(
+                "zenoh {} session {} up; publishing on {}",
+                config.zenoh.mode,
+                session.zid(),
+                config.state_key("*")
+            );
+            Some(session)
+        } else {
+            None
+        };
     let stop = Arc::new(AtomicBool::new(false));
     {
         let stop = stop.clone();

@@ -172,10 +172,14 @@ pub fn run(
     // Sources.
     let mut threads: Vec<(String, JoinHandle<()>)> = Vec::new();
     let mut source_channels: Vec<(bool, Receiver<Ingest>)> = Vec::new();
-    let mut subscribers = Vec::new();
-    // Zenoh subscriptions first: if one fails, no source thread has started yet.
+    let mut subscribers: Vec<Box<dyn std::any::Any + Send>> = Vec::new();
+    // The node in ROS 2 domains, for ROS 2 sources and the ROS 2 sink alike.
+    let participants = session
+        .as_ref()
+        .map(|s| crate::ros2::Participants::new(s.clone(), &config.publish.ros2));
+    // Subscriptions first: if one fails, no source thread has started yet.
     let mut ordered = starting;
-    ordered.sort_by_key(|s| s.kind != SourceKind::Zenoh);
+    ordered.sort_by_key(|s| !s.is_subscription());
     // Sources that stop with an error: (stream, reason, optional).
     let source_errors: Arc<std::sync::Mutex<Vec<(String, String, bool)>>> = Arc::default();
     for source in ordered {
@@ -184,34 +188,30 @@ pub fn run(
         source_channels.push((live, receiver));
         stats.stream(&source.stream);
         match source.kind {
-            SourceKind::Zenoh => {
-                let session = session.as_ref().ok_or_else(|| PipelineError::Subscribe {
-                    stream: source.stream.clone(),
-                    message: "no zenoh session".into(),
-                })?;
-                let subscriber = match sources::zenoh::subscribe(session, source, outlet) {
-                    Ok(subscriber) => subscriber,
+            SourceKind::Zenoh | SourceKind::Ros2 => {
+                let subscribed = match (&session, &participants) {
+                    (Some(session), Some(participants)) => subscribe(session, participants, config, source, outlet),
+                    _ => Err("no zenoh session".to_string()),
+                };
+                match subscribed {
+                    Ok((subscriber, what)) => {
+                        log::info!("source '{}': {what}", source.stream);
+                        subscribers.push(subscriber);
+                    }
                     Err(e) if source.optional => {
                         log::error!(
                             "optional source '{}' cannot subscribe, running without it: {e}",
                             source.stream
                         );
                         failed_sources.push((source.stream.clone(), format!("cannot subscribe: {e}")));
-                        continue;
                     }
-                    Err(e) => {
+                    Err(message) => {
                         return Err(PipelineError::Subscribe {
                             stream: source.stream.clone(),
-                            message: e.to_string(),
+                            message,
                         })
                     }
-                };
-                log::info!(
-                    "source '{}': zenoh subscription to {}",
-                    source.stream,
-                    source.key.as_deref().unwrap_or("")
-                );
-                subscribers.push(subscriber);
+                }
             }
             SourceKind::Files | SourceKind::Mcap => {
                 let settings = source.clone();
@@ -319,7 +319,13 @@ pub fn run(
             Box::new(move || track(done_rx, publish_tx, &config, &stats)),
         )?);
     }
-    let mut publisher = Publisher::new(config, bundle, session.clone(), options.lossless_publish)?;
+    let mut publisher = Publisher::new(
+        config,
+        bundle,
+        session.clone(),
+        participants.as_ref(),
+        options.lossless_publish,
+    )?;
 
     // Node-level zenoh presence: a liveliness token and the status queryable.
     let mut presence = None;
@@ -419,6 +425,32 @@ pub fn run(
         busy: first_ingest.get().map(|f| last_publish - *f).unwrap_or_default(),
         snapshot: stats.snapshot(),
     })
+}
+
+/// Subscribes a network source (zenoh key or ROS 2 topic); the subscription, kept alive as long as
+/// it is held, and a line saying what it subscribed to.
+fn subscribe(
+    session: &Session,
+    participants: &crate::ros2::Participants,
+    config: &Config,
+    source: &crate::config::SourceSettings,
+    outlet: Outlet,
+) -> Result<(Box<dyn std::any::Any + Send>, String), String> {
+    if source.kind == SourceKind::Ros2 {
+        let domain = source.domain_id.unwrap_or(config.publish.ros2.domain_id);
+        let participant = participants.join(domain).map_err(|e| e.to_string())?;
+        let (topic, _) = sources::ros2_topic::topics(&participant, source);
+        let subscription = sources::ros2_topic::subscribe(participant, source, outlet).map_err(|e| e.to_string())?;
+        return Ok((
+            Box::new(subscription),
+            format!("ROS 2 topic {topic} in domain {domain}"),
+        ));
+    }
+    let subscriber = sources::zenoh::subscribe(session, source, outlet).map_err(|e| e.to_string())?;
+    Ok((
+        Box::new(subscriber),
+        format!("zenoh subscription to {}", source.key.as_deref().unwrap_or("")),
+    ))
 }
 
 type Depth = Box<dyn Fn() -> usize + Send + Sync>;

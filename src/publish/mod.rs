@@ -55,11 +55,13 @@ pub struct Publisher {
 
 impl Publisher {
     /// The sinks `[publish]` configures. `lossless`: block on congestion (replay) instead of
-    /// dropping (live). `session`: the node's zenoh session, when one is open.
+    /// dropping (live). `session`: the node's zenoh session, when one is open; `participants`: the
+    /// node in ROS 2 domains (on that session).
     pub fn new(
         config: &Config,
         bundle: &Bundle,
         session: Option<Session>,
+        participants: Option<&crate::ros2::Participants>,
         lossless: bool,
     ) -> Result<Self, PublishError> {
         let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
@@ -73,8 +75,8 @@ impl Publisher {
             sinks.push(Box::new(zenoh_sink::ZenohSink::new(config, session, lossless)));
         }
         if config.publish.ros2.enabled {
-            let session = session.ok_or_else(|| PublishError::Ros2("no zenoh session".into()))?;
-            sinks.push(Box::new(ros2::Ros2Sink::new(config, bundle, session, lossless)?));
+            let participants = participants.ok_or_else(|| PublishError::Ros2("no zenoh session".into()))?;
+            sinks.push(Box::new(ros2::Ros2Sink::new(config, bundle, participants, lossless)?));
         }
         Ok(Self { sinks })
     }

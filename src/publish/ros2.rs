@@ -20,13 +20,14 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 use zenoh::qos::CongestionControl;
-use zenoh::{Session, Wait};
+use zenoh::Wait;
 
 use super::{PublishError, Sink};
 use crate::bundle::Bundle;
 use crate::config::Config;
-use crate::ros2::graph::{self, EntityKind, GraphNode, MessageType, Qos};
+use crate::ros2::graph::{self, EntityKind, MessageType, Qos};
 use crate::ros2::msg::{self, Header, Marker, Pose};
+use crate::ros2::{Participant, Participants};
 use crate::state::{Output, State};
 
 /// `[publish.ros2]`: the node in a ROS 2 graph.
@@ -164,32 +165,23 @@ struct StreamTopics {
 
 pub struct Ros2Sink {
     settings: Ros2Settings,
-    node: GraphNode,
-    session: Session,
+    participant: Arc<Participant>,
     congestion: CongestionControl,
-    /// Ids are handed out in the session as rmw_zenoh does: the node first, then each entity.
-    next_id: u32,
-    _node_token: zenoh::liveliness::LivelinessToken,
     tf: Option<Topic>,
     streams: HashMap<String, StreamTopics>,
     shapes: Option<ShapeWorker>,
 }
 
 impl Ros2Sink {
-    pub fn new(config: &Config, bundle: &Bundle, session: Session, lossless: bool) -> Result<Self, PublishError> {
+    pub fn new(
+        config: &Config,
+        bundle: &Bundle,
+        participants: &Participants,
+        lossless: bool,
+    ) -> Result<Self, PublishError> {
         let settings = config.publish.ros2.clone();
-        let node = GraphNode {
-            domain: settings.domain_id,
-            zid: session.zid().to_string(),
-            id: 0,
-            enclave: settings.enclave.clone(),
-            namespace: settings.namespace.clone(),
-            name: settings.node_name.clone(),
-        };
-        let node_token = session
-            .liveliness()
-            .declare_token(node.node_token())
-            .wait()
+        let participant = participants
+            .join(settings.domain_id)
             .map_err(|e| PublishError::Ros2(format!("declaring the node's liveliness token: {e}")))?;
         let shapes = if settings.markers && settings.shape_rate_hz > 0.0 {
             Some(ShapeWorker::start(bundle, config.model.onnxruntime.as_deref())?)
@@ -204,15 +196,12 @@ impl Ros2Sink {
         );
         let mut sink = Self {
             settings,
-            node,
-            session,
+            participant,
             congestion: if lossless {
                 CongestionControl::Block
             } else {
                 CongestionControl::Drop
             },
-            next_id: 1,
-            _node_token: node_token,
             tf: None,
             streams: HashMap::new(),
             shapes,
@@ -229,19 +218,16 @@ impl Ros2Sink {
     }
 
     fn declare(&mut self, topic: &str, message: &MessageType, qos: Qos) -> Result<Topic, PublishError> {
-        let id = self.next_id;
-        self.next_id += 1;
-        let token_key = self.node.entity_token(EntityKind::Publisher, id, topic, message, &qos);
+        let (node, session) = (self.participant.node(), self.participant.session());
+        let token_key = node.entity_token(EntityKind::Publisher, self.participant.next_id(), topic, message, &qos);
         let error = |e: zenoh::Error| PublishError::Ros2(format!("declaring {topic}: {e}"));
-        let token = self
-            .session
+        let token = session
             .liveliness()
             .declare_token(token_key.clone())
             .wait()
             .map_err(error)?;
-        let publisher = self
-            .session
-            .declare_publisher(graph::topic_key(self.node.domain, topic, message))
+        let publisher = session
+            .declare_publisher(graph::topic_key(node.domain, topic, message))
             .congestion_control(self.congestion)
             .wait()
             .map_err(error)?;

@@ -135,12 +135,23 @@ impl GraphNode {
         message: &MessageType,
         qos: &Qos,
     ) -> String {
+        self.entity_token_of(kind, entity_id, topic, &message.dds_name(), message.hash, qos)
+    }
+
+    /// The same for a type known only by its DDS name and hash (as another node advertised it).
+    pub fn entity_token_of(
+        &self,
+        kind: EntityKind,
+        entity_id: u32,
+        topic: &str,
+        dds_type: &str,
+        hash: &str,
+        qos: &Qos,
+    ) -> String {
         format!(
-            "{}/{}/{}/{}/{}",
+            "{}/{}/{dds_type}/{hash}/{}",
             self.prefix(entity_id, kind.tag()),
             mangle(topic),
-            message.dds_name(),
-            message.hash,
             qos.keyexpr()
         )
     }

@@ -1,6 +1,7 @@
 //! Sources of frames, each feeding one stream: files and folders (`files`), recordings replayed
 //! (`recording`: MCAP files and rosbag2 bags, read by `mcap` and `rosbag2`), zenoh subscriptions
-//! (`zenoh`); `ros2` decodes the ROS 2 messages recordings and subscriptions carry.
+//! (`zenoh`), ROS 2 topics by name over rmw_zenoh (`ros2_topic`); `ros2` decodes the ROS 2 messages
+//! recordings and subscriptions carry.
 //!
 //! A source hands its frames to an `Outlet`, its own bounded channel into the pipeline. The outlet
 //! applies the stream's policy: a live source never waits (when the pipeline is behind, the oldest
@@ -11,6 +12,7 @@ pub mod files;
 pub mod mcap;
 pub mod recording;
 pub mod ros2;
+pub mod ros2_topic;
 pub mod rosbag2;
 pub mod zenoh;
 
@@ -82,6 +84,7 @@ pub fn check(source: &crate::config::SourceSettings) -> Result<String, String> {
             .map_err(|e| e.to_string()),
         SourceKind::Mcap => recording::check(source).map_err(|e| e.to_string()),
         SourceKind::Zenoh => Ok(format!("zenoh key {}", source.key.as_deref().unwrap_or(""))),
+        SourceKind::Ros2 => Ok(format!("ROS 2 topic {}", source.topic.as_deref().unwrap_or(""))),
     }
 }
 

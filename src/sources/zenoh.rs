@@ -54,10 +54,12 @@ pub fn decode_sample(sample: &Sample, format: WireFormat, max_points: usize) -> 
     let format = match format {
         WireFormat::Auto if encoding.contains("depthai") => WireFormat::Depthai,
         WireFormat::Auto if encoding.contains("cdr") || encoding.contains("PointCloud2") => WireFormat::Cdr,
+        // rmw_zenoh sets no encoding (zenoh/bytes): its samples are CDR.
+        WireFormat::Auto if sample.encoding() == &zenoh::bytes::Encoding::ZENOH_BYTES => WireFormat::Cdr,
         WireFormat::Auto => {
             return Err(format!(
-                "unknown encoding '{encoding}' (expected application/cdr;sensor_msgs/msg/PointCloud2 or \
-                 application/octet-stream;{DEPTHAI_SCHEMA}); set the source's `format`"
+                "unknown encoding '{encoding}' (expected application/cdr;sensor_msgs/msg/PointCloud2, none \
+                 (rmw_zenoh) or application/octet-stream;{DEPTHAI_SCHEMA}); set the source's `format`"
             ))
         }
         chosen => chosen,

@@ -76,6 +76,16 @@ fn bad_values_are_refused_with_the_key_named() {
             "[[source]]\nstream = \"a\"\nkind = \"files\"\npath = \"x\"\nsensor_to_gravity_rotation = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]\n",
             "source[0] ('a') sensor_to_gravity_rotation",
         ),
+        ("[publish.ros2]\nnamespace = \"gdvae\"\n", "publish.ros2.namespace"),
+        ("[publish.ros2]\nnamespace = \"/a//b\"\n", "publish.ros2.namespace"),
+        ("[publish.ros2]\nnode_name = \"edge-node\"\n", "publish.ros2.node_name"),
+        ("[publish.ros2]\ndomain_id = 300\n", "publish.ros2.domain_id"),
+        ("[publish.ros2]\nframe_id = \"\"\n", "publish.ros2.frame_id"),
+        ("[[source]]\nstream = \"a\"\nkind = \"ros2\"\n", "a ros2 source needs `topic`"),
+        (
+            "[[source]]\nstream = \"a\"\nkind = \"ros2\"\ntopic = \"/camera/points*\"\n",
+            "a ros2 source needs `topic`",
+        ),
     ];
     for (text, expected) in cases {
         let config = Config::parse(text).unwrap();

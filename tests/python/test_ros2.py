@@ -225,3 +225,106 @@ def test_ros2_output_follows_rmw_zenoh_and_round_trips_through_rosbags(tmp_path)
     assert not [t for t in after if t.split("/")[2] == nodes[0]["zid"]], after
     deleted = {key for kind, key in token_events if kind == "SampleKind.DELETE"}
     assert set(tokens) <= deleted, set(tokens) - deleted
+
+
+def test_a_python_rmw_zenoh_publisher_feeds_the_node_by_topic_name(tmp_path):
+    """A publisher speaking rmw_zenoh's conventions (its node and publisher tokens, the exact key,
+    the attachment, no encoding) that waits for a subscriber, as `ros2 topic pub
+    --wait-matching-subscriptions` does: the node declares a matching subscription token, then
+    turns the point clouds into states. A sample of another type and one with a malformed
+    attachment are counted rejections, and the node keeps going."""
+    from mcap.reader import make_reader
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    jsonl = tmp_path / "states.jsonl"
+    config = tmp_path / "node.toml"
+    config.write_text(f"""
+[model]
+bundle = "{ROOT / 'models/bundles/cpu-gdvaepp'}"
+threads = 1
+[pipeline]
+summary_seconds = 0.0
+[publish]
+zenoh = false
+jsonl = "{jsonl}"
+[publish.ros2]
+domain_id = {DOMAIN}
+node_name = "listener"
+[zenoh]
+listen = ["{endpoint}"]
+multicast_scouting = false
+[[source]]
+stream = "cam"
+kind = "ros2"
+topic = "/camera/depth/points"
+[[source]]
+stream = "raw"
+kind = "zenoh"
+key = "{DOMAIN}/lidar/points/sensor_msgs::msg::dds_::PointCloud2_/*"
+""")
+    clouds = [message.data for _, _, message in
+              make_reader(open(ROOT / "sim/samples/walk_switch.mcap", "rb")).iter_messages(
+                  topics=["/camera/depth/points"])][:12]
+    cloud_type = "sensor_msgs/msg/PointCloud2"
+    node = subprocess.Popen([NODE, "-q", "run", "--config", str(config)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    try:
+        with client(endpoint) as session:
+            zid = str(session.zid())
+            qos = "::,10:,:,:,,"
+            node_token = session.liveliness().declare_token(f"@ros2_lv/{DOMAIN}/{zid}/0/0/NN/%/%/talker")
+            pub_token = (f"@ros2_lv/{DOMAIN}/{zid}/0/1/MP/%/%/talker/%camera%depth%points/{dds_name(cloud_type)}/"
+                         f"{STORE.hash_rihs01(cloud_type)}/{qos}")
+            publisher_token = session.liveliness().declare_token(pub_token)
+            # Wait for a matching subscription, as a publisher that waits for subscribers does.
+            pattern = f"@ros2_lv/{DOMAIN}/*/*/*/MS/*/*/*/%camera%depth%points/{dds_name(cloud_type)}/*/*"
+            deadline = time.monotonic() + 60
+            matched = []
+            while not matched and time.monotonic() < deadline:
+                matched = [str(r.ok.key_expr) for r in session.liveliness().get(pattern, timeout=1.0)
+                           if r.ok is not None]
+            assert matched, "the node declared a subscription token for the topic"
+            subscription = parse_token(matched[0])
+            assert subscription["node"] == "listener" and subscription["hash"] == STORE.hash_rihs01(cloud_type)
+
+            publisher = session.declare_publisher(ros_key("/camera/depth/points", cloud_type))
+            gid = bytes(range(16))
+            for sequence, cloud in enumerate(clouds, start=1):
+                attachment = zenoh.ext.z_serialize((zenoh.ext.Int64(sequence), zenoh.ext.Int64(time.time_ns()), gid))
+                publisher.put(cloud, attachment=attachment)
+                time.sleep(0.05)
+            # Another type on the topic, and a cloud with a malformed attachment.
+            session.put(ros_key("/camera/depth/points", "std_msgs/msg/String"),
+                        bytes(STORE.serialize_cdr(STORE.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String")),
+                        attachment=zenoh.ext.z_serialize((zenoh.ext.Int64(99), zenoh.ext.Int64(0), gid)))
+            publisher.put(clouds[0], attachment=b"\x01\x02\x03")
+            # A plain zenoh source under format "auto" takes rmw_zenoh's encoding-less samples.
+            session.put(f"{DOMAIN}/lidar/points/{dds_name(cloud_type)}/{STORE.hash_rihs01(cloud_type)}", clouds[1])
+            deadline = time.monotonic() + 60
+            lines = []
+            while time.monotonic() < deadline:
+                lines = [json.loads(l) for l in jsonl.read_text().splitlines()] if jsonl.exists() else []
+                if sum(1 for l in lines if l["stream"] == "cam") >= len(clouds) + 2 and \
+                        any(l["stream"] == "raw" for l in lines):
+                    break
+                time.sleep(0.1)
+            node.send_signal(signal.SIGTERM)
+            out, err = node.communicate(timeout=30)
+            publisher_token.undeclare()
+            node_token.undeclare()
+    finally:
+        if node.poll() is None:
+            node.kill()
+    assert node.returncode == 0, err.decode()
+    cam = [l for l in lines if l["stream"] == "cam"]
+    states = [l for l in cam if l["schema"] == "gdvae.state/1"]
+    rejected = [l for l in cam if l["schema"] == "gdvae.rejected/1"]
+    assert len(states) == len(clouds), (len(states), [r["reason"] for r in rejected])
+    assert [s["stamps"]["sensor_ns"] for s in states] == sorted(s["stamps"]["sensor_ns"] for s in states)
+    reasons = [r["reason"] for r in rejected]
+    assert len(reasons) == 2, reasons
+    assert any("std_msgs::msg::dds_::String_" in r and "is not one the node reads" in r for r in reasons), reasons
+    assert any("attachment" in r for r in reasons), reasons
+    assert [l["schema"] for l in lines if l["stream"] == "raw"] == ["gdvae.state/1"]
+    row = next(l for l in out.decode().splitlines() if l.strip().startswith("cam "))
+    assert f"{len(clouds) + 2} received" in " ".join(row.split()), row

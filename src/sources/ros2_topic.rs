@@ -1,0 +1,185 @@
+//! The ROS 2 source: a topic by name, as a ROS 2 subscriber over rmw_zenoh receives it, with no
+//! key to look up. `kind = "ros2"`, `topic = "/camera/points"`: `sensor_msgs/msg/PointCloud2`, or a
+//! depth `sensor_msgs/msg/Image` unprojected with the latest `CameraInfo` of `camera_info_topic`.
+//!
+//! It subscribes on the topic's key with any type and any type hash (a Humble, Jazzy or Rolling
+//! publisher computes its own), and watches the graph's liveliness for the topic's publishers: for
+//! each type and hash one advertises, it declares a matching subscription token (MS), so that a
+//! publisher that waits for subscribers starts sending. Each sample must carry rmw_zenoh's
+//! attachment; a sample of another type, or without a valid attachment, is a counted rejection.
+
+use std::sync::{Arc, Mutex};
+
+use zenoh::sample::{Sample, SampleKind};
+use zenoh::Wait;
+
+use crate::cloud::{PointCloud, Unit};
+use crate::config::SourceSettings;
+use crate::ros2::graph::{self, EntityKind, Qos};
+use crate::ros2::{msg, Participant};
+use crate::sources::ros2::{decode_camera_info, decode_depth_image, decode_point_cloud2, CameraIntrinsics};
+use crate::sources::Outlet;
+
+/// The subscriptions of one ROS 2 source; they end when it is dropped.
+pub struct Ros2Subscription {
+    _data: zenoh::pubsub::Subscriber<()>,
+    _camera_info: zenoh::pubsub::Subscriber<()>,
+    _publishers: zenoh::pubsub::Subscriber<()>,
+    _tokens: Arc<Mutex<Vec<(String, zenoh::liveliness::LivelinessToken)>>>,
+}
+
+/// The topics a source reads: its data topic and the CameraInfo topic of a depth image, absolute.
+pub fn topics(participant: &Participant, settings: &SourceSettings) -> (String, String) {
+    let node = participant.node();
+    let topic = node.resolve(settings.topic.as_deref().unwrap_or(""));
+    let info = match &settings.camera_info_topic {
+        Some(info) => node.resolve(info),
+        None => format!("{}/camera_info", topic.rsplit_once('/').map(|(p, _)| p).unwrap_or("")),
+    };
+    (topic, info)
+}
+
+pub fn subscribe(
+    participant: Arc<Participant>,
+    settings: &SourceSettings,
+    outlet: Outlet,
+) -> Result<Ros2Subscription, zenoh::Error> {
+    let (topic, info_topic) = topics(&participant, settings);
+    let domain = participant.node().domain;
+    let session = participant.session().clone();
+    let intrinsics: Arc<Mutex<Option<Arc<CameraIntrinsics>>>> = Arc::default();
+
+    let camera_info = {
+        let intrinsics = intrinsics.clone();
+        let key = graph::topic_key_any_hash(domain, &info_topic, "sensor_msgs", "CameraInfo");
+        session
+            .declare_subscriber(key)
+            .callback(move |sample: Sample| {
+                if graph::parse_attachment(&attachment_bytes(&sample)).is_err() {
+                    return;
+                }
+                match decode_camera_info(&sample.payload().to_bytes()) {
+                    Ok((_, k)) => *intrinsics.lock().unwrap_or_else(|e| e.into_inner()) = Some(Arc::new(k)),
+                    Err(e) => log::warn!("CameraInfo on {} ignored: {e}", sample.key_expr()),
+                }
+            })
+            .wait()?
+    };
+
+    let data = {
+        let (max_points, depth_step, unit) = (
+            settings.max_points,
+            settings.depth_step,
+            settings.unit.unwrap_or(Unit::Metre),
+        );
+        let outlet = Mutex::new(outlet);
+        let topic = topic.clone();
+        session
+            .declare_subscriber(format!("{domain}/{}/*/*", topic.trim_matches('/')))
+            .callback(move |sample: Sample| {
+                let decoded = decode(&sample, &intrinsics, max_points, depth_step);
+                let Ok(mut outlet) = outlet.lock() else { return };
+                match decoded {
+                    Ok((stamp, points, dropped)) => {
+                        outlet.frame(PointCloud { points }, unit, Some(stamp), dropped);
+                    }
+                    Err(reason) => {
+                        outlet.reject(format!("ROS 2 sample on {topic}: {reason}"), None);
+                    }
+                }
+            })
+            .wait()?
+    };
+
+    // Subscription tokens, one per (topic, type, hash) a publisher advertises.
+    let tokens: Arc<Mutex<Vec<(String, zenoh::liveliness::LivelinessToken)>>> = Arc::default();
+    let publishers = {
+        let (tokens, participant) = (tokens.clone(), participant.clone());
+        let watched = [graph::mangle(&topic), graph::mangle(&info_topic)];
+        session
+            .liveliness()
+            .declare_subscriber(format!("{}/{domain}/**", graph::ADMIN_SPACE))
+            .history(true)
+            .callback(move |sample: Sample| {
+                if sample.kind() != SampleKind::Put {
+                    return;
+                }
+                let key = sample.key_expr().as_str();
+                let parts: Vec<&str> = key.split('/').collect();
+                // @ros2_lv/domain/zid/nid/id/MP/enclave/ns/node/topic/type/hash/qos
+                if parts.len() < 13 || parts[5] != "MP" || !watched.contains(&parts[9].to_string()) {
+                    return;
+                }
+                let (topic, dds_type, hash) = (parts[9].replace('%', "/"), parts[10], parts[11]);
+                let id = format!("{topic} {dds_type} {hash}");
+                let mut tokens = tokens.lock().unwrap_or_else(|e| e.into_inner());
+                if tokens.iter().any(|(known, _)| *known == id) {
+                    return;
+                }
+                // Best effort, keep last 10: compatible with any publisher's reliability.
+                let qos = Qos {
+                    reliable: false,
+                    transient_local: false,
+                    depth: 10,
+                };
+                let token_key = participant.node().entity_token_of(
+                    EntityKind::Subscription,
+                    participant.next_id(),
+                    &topic,
+                    dds_type,
+                    hash,
+                    &qos,
+                );
+                match participant.session().liveliness().declare_token(token_key).wait() {
+                    Ok(token) => {
+                        log::info!("ROS 2: subscribed to {topic} ({dds_type})");
+                        tokens.push((id, token));
+                    }
+                    Err(e) => log::warn!("ROS 2: declaring a subscription token for {topic}: {e}"),
+                }
+            })
+            .wait()?
+    };
+
+    Ok(Ros2Subscription {
+        _data: data,
+        _camera_info: camera_info,
+        _publishers: publishers,
+        _tokens: tokens,
+    })
+}
+
+fn attachment_bytes(sample: &Sample) -> Vec<u8> {
+    sample.attachment().map(|a| a.to_bytes().to_vec()).unwrap_or_default()
+}
+
+/// One data sample: its attachment checked, its type read from its key, its payload decoded.
+fn decode(
+    sample: &Sample,
+    intrinsics: &Mutex<Option<Arc<CameraIntrinsics>>>,
+    max_points: usize,
+    depth_step: usize,
+) -> Result<(u64, Vec<[f32; 3]>, usize), String> {
+    graph::parse_attachment(&attachment_bytes(sample))?;
+    let key = sample.key_expr().as_str();
+    let dds_type = key.rsplit('/').nth(1).unwrap_or("");
+    let payload = sample.payload().to_bytes();
+    if dds_type == msg::POINT_CLOUD2.dds_name() {
+        let cloud = decode_point_cloud2(&payload, max_points).map_err(|e| e.to_string())?;
+        Ok((cloud.header.stamp_ns, cloud.points, cloud.dropped_non_finite))
+    } else if dds_type == msg::IMAGE.dds_name() {
+        let k = intrinsics
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+            .ok_or("depth image before any CameraInfo")?;
+        let cloud = decode_depth_image(&payload, &k, depth_step, max_points).map_err(|e| e.to_string())?;
+        Ok((cloud.header.stamp_ns, cloud.points, cloud.dropped_non_finite))
+    } else {
+        Err(format!(
+            "type {dds_type} is not one the node reads ({} or {})",
+            msg::POINT_CLOUD2.ros_name(),
+            msg::IMAGE.ros_name()
+        ))
+    }
+}
