@@ -12,8 +12,9 @@ use crate::cloud::Unit;
 use crate::prepare::Sampling;
 // The track stage owns its settings; they are re-exported here with the rest of the config.
 pub use crate::track::{ChangeDetector, HeadingMode, Smoothing, TrackSettings};
-// So does each sink.
+// So does each sink, and each source its kind's settings.
 pub use crate::publish::Ros2Settings;
+pub use crate::sources::zenoh::WireFormat;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
@@ -261,91 +262,163 @@ pub enum SourceKind {
     Ros2,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum WireFormat {
-    /// Decide per sample from its zenoh encoding.
-    Auto,
-    /// ROS 2 sensor_msgs/msg/PointCloud2 in CDR.
-    Cdr,
-    /// The DepthAI harness: float32 x, y, z in millimetres.
-    Depthai,
-}
-
-#[derive(Debug, Clone, Deserialize, Serialize)]
-#[serde(deny_unknown_fields)]
+/// One `[[source]]`: what every source has (its stream, its frames' unit and size limit, its
+/// sensor's pose), and its kind's own settings, owned and validated by its module in `sources/`.
+/// A key that does not belong to the kind is refused.
+#[derive(Debug, Clone, Serialize)]
 pub struct SourceSettings {
     /// Stream id: the third part of the state's key expression.
     pub stream: String,
-    pub kind: SourceKind,
-    /// Files and MCAP: the file or folder.
-    #[serde(default)]
-    pub path: Option<PathBuf>,
-    /// MCAP: the PointCloud2 topic (default: the first PointCloud2 topic), or a depth Image topic
-    /// (its CameraInfo is `camera_info_topic`). ROS 2: the topic to subscribe to (required).
-    #[serde(default)]
-    pub topic: Option<String>,
-    #[serde(default)]
-    pub camera_info_topic: Option<String>,
-    /// Depth images: keep every `depth_step`-th pixel in each direction.
-    #[serde(default = "default_depth_step")]
-    pub depth_step: usize,
-    /// Replay speed: 1 = original timing, 2 = twice as fast, 0 = as fast as possible.
-    /// Files have no timing: `rate_hz` paces them (0 = as fast as possible).
-    #[serde(default = "default_speed")]
-    pub speed: f64,
-    #[serde(default)]
-    pub rate_hz: f64,
-    /// Start again at the end (a looping demo); a replay benchmark leaves it off.
-    #[serde(default)]
-    pub repeat: bool,
-    /// ROS 2: the domain (default: `[publish.ros2] domain_id`).
-    #[serde(default)]
-    pub domain_id: Option<u32>,
-    /// Zenoh: key expression to subscribe to.
-    #[serde(default)]
-    pub key: Option<String>,
-    #[serde(default = "default_wire")]
-    pub format: WireFormat,
-    /// Unit of the coordinates (files and CDR are metres by convention; DepthAI is millimetres).
-    #[serde(default)]
-    pub unit: Option<Unit>,
-    /// Largest frame accepted (points); bigger frames are rejected before they are decoded.
-    #[serde(default = "default_max_points")]
-    pub max_points: usize,
-    /// This sensor's pose, when it differs from `[prepare]`'s: sensor frame -> gravity frame.
-    #[serde(default)]
-    pub sensor_to_gravity_rotation: Option<[[f32; 3]; 3]>,
-    #[serde(default)]
-    pub sensor_to_gravity_translation: Option<[f32; 3]>,
+    #[serde(flatten)]
+    pub input: Input,
     /// The node runs on without this source when it cannot start or fails (logged, listed in the
     /// report). Off by default: a source that cannot do its job fails the run, with a non-zero exit.
-    #[serde(default)]
     pub optional: bool,
+    /// Unit of the coordinates (files and CDR are metres by convention; DepthAI is millimetres).
+    pub unit: Option<Unit>,
+    /// Largest frame accepted (points); bigger frames are rejected before they are decoded.
+    pub max_points: usize,
+    /// This sensor's pose, when it differs from `[prepare]`'s: sensor frame -> gravity frame.
+    pub sensor_to_gravity_rotation: Option<[[f32; 3]; 3]>,
+    pub sensor_to_gravity_translation: Option<[f32; 3]>,
 }
 
-fn default_depth_step() -> usize {
-    2
+/// A source's kind and the settings of that kind.
+#[derive(Debug, Clone, Serialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum Input {
+    Files(crate::sources::files::FilesSettings),
+    Mcap(crate::sources::recording::RecordingSettings),
+    Zenoh(crate::sources::zenoh::ZenohSourceSettings),
+    Ros2(crate::sources::ros2_topic::Ros2TopicSettings),
 }
-fn default_speed() -> f64 {
-    1.0
+
+/// The keys every source has; the rest belong to its kind.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CommonSettings {
+    stream: String,
+    kind: SourceKind,
+    #[serde(default)]
+    optional: bool,
+    #[serde(default)]
+    unit: Option<Unit>,
+    #[serde(default = "default_max_points")]
+    max_points: usize,
+    #[serde(default)]
+    sensor_to_gravity_rotation: Option<[[f32; 3]; 3]>,
+    #[serde(default)]
+    sensor_to_gravity_translation: Option<[f32; 3]>,
 }
-fn default_wire() -> WireFormat {
-    WireFormat::Auto
-}
+
+const COMMON_KEYS: [&str; 7] = [
+    "stream",
+    "kind",
+    "optional",
+    "unit",
+    "max_points",
+    "sensor_to_gravity_rotation",
+    "sensor_to_gravity_translation",
+];
+
 fn default_max_points() -> usize {
     4_000_000
 }
 
+impl<'de> Deserialize<'de> for SourceSettings {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        let table = toml::Table::deserialize(deserializer)?;
+        let (common, own): (toml::Table, toml::Table) = table
+            .into_iter()
+            .partition(|(key, _)| COMMON_KEYS.contains(&key.as_str()));
+        let common = CommonSettings::deserialize(toml::Value::Table(common)).map_err(D::Error::custom)?;
+        let own = toml::Value::Table(own);
+        let kind_error = |e: toml::de::Error| {
+            D::Error::custom(format!(
+                "source '{}' ({}): {}",
+                common.stream,
+                serde_json::to_string(&common.kind)
+                    .unwrap_or_default()
+                    .trim_matches('"'),
+                e.message()
+            ))
+        };
+        let input = match common.kind {
+            SourceKind::Files => Input::Files(Deserialize::deserialize(own).map_err(kind_error)?),
+            SourceKind::Mcap => Input::Mcap(Deserialize::deserialize(own).map_err(kind_error)?),
+            SourceKind::Zenoh => Input::Zenoh(Deserialize::deserialize(own).map_err(kind_error)?),
+            SourceKind::Ros2 => Input::Ros2(Deserialize::deserialize(own).map_err(kind_error)?),
+        };
+        Ok(Self {
+            stream: common.stream,
+            input,
+            optional: common.optional,
+            unit: common.unit,
+            max_points: common.max_points,
+            sensor_to_gravity_rotation: common.sensor_to_gravity_rotation,
+            sensor_to_gravity_translation: common.sensor_to_gravity_translation,
+        })
+    }
+}
+
 impl SourceSettings {
+    /// A source of `input` with every common setting at its default.
+    pub fn new(stream: String, input: Input) -> Self {
+        Self {
+            stream,
+            input,
+            optional: false,
+            unit: None,
+            max_points: default_max_points(),
+            sensor_to_gravity_rotation: None,
+            sensor_to_gravity_translation: None,
+        }
+    }
+
+    pub fn kind(&self) -> SourceKind {
+        match self.input {
+            Input::Files(_) => SourceKind::Files,
+            Input::Mcap(_) => SourceKind::Mcap,
+            Input::Zenoh(_) => SourceKind::Zenoh,
+            Input::Ros2(_) => SourceKind::Ros2,
+        }
+    }
+
     /// Live sources never block their sensor: when the pipeline is behind they drop the oldest frame.
     pub fn is_live(&self) -> bool {
-        matches!(self.kind, SourceKind::Zenoh | SourceKind::Ros2)
+        self.is_subscription()
     }
 
     /// Whether it subscribes on the zenoh session (rather than running a thread of its own).
     pub fn is_subscription(&self) -> bool {
-        self.is_live()
+        matches!(self.input, Input::Zenoh(_) | Input::Ros2(_))
+    }
+
+    /// Checks every value once; the message names the source and the key.
+    fn validate(&self, at: &str) -> Result<(), String> {
+        if let Some(rotation) = &self.sensor_to_gravity_rotation {
+            check_rotation(&format!("{at} sensor_to_gravity_rotation"), rotation)?;
+        }
+        if self.max_points == 0 {
+            return Err(format!("{at}: max_points must be at least 1"));
+        }
+        match &self.input {
+            Input::Files(own) => own.validate(),
+            Input::Mcap(own) => own.validate(),
+            Input::Zenoh(own) => own.validate(),
+            Input::Ros2(own) => own.validate(),
+        }
+        .map_err(|message| format!("{at}: {message}"))
+    }
+
+    /// The file or folder it reads, if it reads one.
+    fn path_mut(&mut self) -> Option<&mut PathBuf> {
+        match &mut self.input {
+            Input::Files(own) => Some(&mut own.path),
+            Input::Mcap(own) => Some(&mut own.path),
+            Input::Zenoh(_) | Input::Ros2(_) => None,
+        }
     }
 }
 
@@ -362,6 +435,17 @@ fn check_rotation(key: &str, rows: &[[f32; 3]; 3]) -> Result<(), String> {
 impl Config {
     /// Reads, parses and validates a config file; relative paths become relative to its folder.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let config = Self::read(path)?;
+        config.validate().map_err(|message| ConfigError::Invalid {
+            path: path.to_path_buf(),
+            message,
+        })?;
+        Ok(config)
+    }
+
+    /// Reads and parses a config file, relative paths resolved, not yet validated: for a command
+    /// that adjusts it (replay's sources, evaluate's outputs) before its one validation.
+    pub fn read(path: &Path) -> Result<Self, ConfigError> {
         let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
             path: path.to_path_buf(),
             source,
@@ -370,12 +454,7 @@ impl Config {
             path: path.to_path_buf(),
             message,
         })?;
-        let base = path.parent().unwrap_or(Path::new("."));
-        config.resolve_paths(base);
-        config.validate().map_err(|message| ConfigError::Invalid {
-            path: path.to_path_buf(),
-            message,
-        })?;
+        config.resolve_paths(path.parent().unwrap_or(Path::new(".")));
         Ok(config)
     }
 
@@ -399,7 +478,7 @@ impl Config {
             *jsonl = path.display().to_string();
         }
         for source in &mut self.sources {
-            if let Some(p) = source.path.as_mut() {
+            if let Some(p) = source.path_mut() {
                 resolve(p);
             }
         }
@@ -475,43 +554,7 @@ impl Config {
             if !streams.insert(s.stream.as_str()) {
                 return Err(format!("{at}: stream '{}' is used by two sources", s.stream));
             }
-            match s.kind {
-                SourceKind::Files | SourceKind::Mcap if s.path.is_none() => {
-                    return Err(format!("{at}: a {:?} source needs `path`", s.kind).to_lowercase())
-                }
-                SourceKind::Zenoh if s.key.as_deref().is_none_or(str::is_empty) => {
-                    return Err(format!("{at}: a zenoh source needs `key`"))
-                }
-                SourceKind::Ros2 => {
-                    let topic = s.topic.as_deref().unwrap_or("");
-                    let names = |t: &str| {
-                        !t.is_empty()
-                            && t.trim_start_matches('/').split('/').all(|part| {
-                                part.chars().next().is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
-                                    && part.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
-                            })
-                    };
-                    if !names(topic) || !s.camera_info_topic.as_deref().is_none_or(names) {
-                        return Err(format!(
-                            "{at}: a ros2 source needs `topic`, a ROS 2 topic name like \"/camera/points\" \
-                             (letters, digits, underscores); got '{topic}'"
-                        ));
-                    }
-                    if s.domain_id.is_some_and(|d| d > 232) {
-                        return Err(format!("{at}: domain_id must be within 0..=232"));
-                    }
-                }
-                _ => {}
-            }
-            if !(s.speed >= 0.0 && s.speed.is_finite()) || !(s.rate_hz >= 0.0 && s.rate_hz.is_finite()) {
-                return Err(format!("{at}: speed and rate_hz must be finite and >= 0"));
-            }
-            if let Some(rotation) = &s.sensor_to_gravity_rotation {
-                check_rotation(&format!("{at} sensor_to_gravity_rotation"), rotation)?;
-            }
-            if s.depth_step == 0 || s.max_points == 0 {
-                return Err(format!("{at}: depth_step and max_points must be at least 1"));
-            }
+            s.validate(&at)?;
         }
         Ok(())
     }

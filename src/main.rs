@@ -39,91 +39,18 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Run the node as configured until SIGINT/SIGTERM (or until every replayed source has ended).
-    Run {
-        #[arg(long, default_value = "config/default.toml")]
-        config: PathBuf,
-        /// Print one line per published state (stream, sequence, identity, yaw, latency).
-        #[arg(long)]
-        live_summary: bool,
-    },
+    Run(RunArgs),
     /// Offline replay benchmark: every frame of the recordings or point-cloud files, as fast as
     /// possible, losslessly; prints throughput and latency percentiles per stage, peak memory,
     /// and ONNX Runtime alone on the same bundle, batch and threads for comparison.
-    Replay {
-        /// MCAP files, rosbag2 folders, point-cloud files or folders; one stream each.
-        #[arg(required = true)]
-        inputs: Vec<PathBuf>,
-        /// Settings to start from (sources in it are ignored).
-        #[arg(long)]
-        config: Option<PathBuf>,
-        #[arg(long)]
-        bundle: Option<PathBuf>,
-        /// Replay speed: 0 = as fast as possible, 1 = original timing (e.g. a 30 Hz feed).
-        #[arg(long, default_value_t = 0.0)]
-        speed: f64,
-        /// Also publish on zenoh (default: no network, JSON lines only if --jsonl).
-        #[arg(long)]
-        zenoh: bool,
-        /// Write every state as a JSON line to this file ("-": stdout).
-        #[arg(long)]
-        jsonl: Option<String>,
-        /// Print the report as JSON.
-        #[arg(long)]
-        json: bool,
-        /// Skip the ONNX-Runtime-alone comparison.
-        #[arg(long)]
-        no_baseline: bool,
-    },
+    Replay(ReplayArgs),
     /// Tracking measured against ground truth: replays sim recordings (their `/sim/ground_truth`
     /// channel) through the pipeline and reports heading and position errors, identity changes
     /// found (recall, false changes, delay) and identity retrieval, per recording and overall.
-    Evaluate {
-        /// MCAP recordings (or rosbag2 folders); one stream each.
-        #[arg(required = true)]
-        recordings: Vec<PathBuf>,
-        /// Settings to start from (its sources and publishing are replaced; the crop, model and
-        /// track settings are used).
-        #[arg(long, default_value = "config/replay.toml")]
-        config: PathBuf,
-        #[arg(long)]
-        bundle: Option<PathBuf>,
-        /// Override a track setting, e.g. `--set cusum_threshold=6` (repeatable; for tuning).
-        #[arg(long = "set", value_name = "KEY=VALUE")]
-        set: Vec<String>,
-        /// A true identity change counts as found when reported within this many frames.
-        #[arg(long, default_value_t = 10)]
-        tolerance_frames: usize,
-        /// Keep the config's sensor pose instead of the recording's `world_from_camera`.
-        #[arg(long)]
-        keep_sensor_pose: bool,
-        /// Write the report as JSON to this file ("-": stdout, instead of the table).
-        #[arg(long)]
-        out: Option<String>,
-        /// Write one PNG per recording into this folder.
-        #[arg(long)]
-        plots: Option<PathBuf>,
-    },
+    Evaluate(EvaluateArgs),
     /// Encode one point-cloud file (PLY, PCD, OBJ, XYZ/CSV) and print the codes as JSON.
-    Encode {
-        file: PathBuf,
-        /// Settings (prepare, model); default: config/default.toml's defaults.
-        #[arg(long)]
-        config: Option<PathBuf>,
-        /// Model bundle folder (overrides the config's).
-        #[arg(long)]
-        bundle: Option<PathBuf>,
-        /// Unit of the file's coordinates.
-        #[arg(long, value_enum, default_value = "metre")]
-        unit: UnitArg,
-        #[arg(long, value_enum)]
-        sampling: Option<SamplingArg>,
-        /// ONNX Runtime library (default: ORT_DYLIB_PATH, then the .venv onnxruntime wheel).
-        #[arg(long)]
-        onnxruntime: Option<PathBuf>,
-        #[arg(long)]
-        seed: Option<u64>,
-    },
-    /// Parse and validate a config; check its bundle, ONNX Runtime and source paths.
+    Encode(EncodeArgs),
+    /// Parse and validate a config; check its bundle, ONNX Runtime and sources.
     CheckConfig {
         #[arg(default_value = "config/default.toml")]
         config: PathBuf,
@@ -137,6 +64,92 @@ enum Command {
         #[arg(long)]
         onnxruntime: Option<PathBuf>,
     },
+}
+
+#[derive(clap::Args)]
+struct RunArgs {
+    #[arg(long, default_value = "config/default.toml")]
+    config: PathBuf,
+    /// Print one line per published state (stream, sequence, identity, yaw, latency); JSON lines
+    /// and the periodic summary are then off.
+    #[arg(long)]
+    live_summary: bool,
+}
+
+#[derive(clap::Args)]
+struct ReplayArgs {
+    /// MCAP files, rosbag2 bags (folders or .db3 files), point-cloud files or folders; one stream each.
+    #[arg(required = true)]
+    inputs: Vec<PathBuf>,
+    /// Settings to start from (sources in it are ignored).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    #[arg(long)]
+    bundle: Option<PathBuf>,
+    /// Replay speed: 0 = as fast as possible, 1 = original timing (e.g. a 30 Hz feed).
+    #[arg(long, default_value_t = 0.0)]
+    speed: f64,
+    /// Also publish on zenoh (default: no network, JSON lines only if --jsonl).
+    #[arg(long)]
+    zenoh: bool,
+    /// Write every state as a JSON line to this file ("-": stdout).
+    #[arg(long)]
+    jsonl: Option<String>,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+    /// Skip the ONNX-Runtime-alone comparison.
+    #[arg(long)]
+    no_baseline: bool,
+}
+
+#[derive(clap::Args)]
+struct EvaluateArgs {
+    /// Sim recordings (MCAP files or rosbag2 bags); one stream each.
+    #[arg(required = true)]
+    recordings: Vec<PathBuf>,
+    /// Settings to start from (its sources and publishing are replaced; the crop, model and
+    /// track settings are used).
+    #[arg(long, default_value = "config/replay.toml")]
+    config: PathBuf,
+    #[arg(long)]
+    bundle: Option<PathBuf>,
+    /// Override a track setting, e.g. `--set cusum_threshold=6` (repeatable; for tuning).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
+    /// A true identity change counts as found when reported within this many frames.
+    #[arg(long, default_value_t = 10)]
+    tolerance_frames: usize,
+    /// Keep the config's sensor pose instead of the recording's `world_from_camera`.
+    #[arg(long)]
+    keep_sensor_pose: bool,
+    /// Write the report as JSON to this file ("-": stdout, instead of the table).
+    #[arg(long)]
+    out: Option<String>,
+    /// Write one PNG per recording into this folder.
+    #[arg(long)]
+    plots: Option<PathBuf>,
+}
+
+#[derive(clap::Args)]
+struct EncodeArgs {
+    file: PathBuf,
+    /// Settings (prepare, model); default: config/default.toml's defaults.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Model bundle folder (overrides the config's).
+    #[arg(long)]
+    bundle: Option<PathBuf>,
+    /// Unit of the file's coordinates.
+    #[arg(long, value_enum, default_value = "metre")]
+    unit: UnitArg,
+    #[arg(long, value_enum)]
+    sampling: Option<SamplingArg>,
+    /// ONNX Runtime library (default: ORT_DYLIB_PATH, then the .venv onnxruntime wheel).
+    #[arg(long)]
+    onnxruntime: Option<PathBuf>,
+    #[arg(long)]
+    seed: Option<u64>,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -175,238 +188,235 @@ fn main() -> ExitCode {
 
 fn run(command: Command) -> Result<()> {
     match command {
-        Command::Run { config, live_summary } => {
-            let mut config = Config::load(&config)?;
-            if config.sources.is_empty() {
-                bail!("the config has no [[source]]; nothing to run");
-            }
-            if live_summary && config.publish.jsonl.is_none() {
-                config.pipeline.summary_seconds = 0.0;
-            }
-            let summary = run_pipeline(&config, RunOptions::default(), live_summary)?;
-            print_report(&summary, None, false)?;
-            Ok(())
-        }
-        Command::Replay {
-            inputs,
-            config,
-            bundle,
-            speed,
-            zenoh,
-            jsonl,
-            json,
-            no_baseline,
-        } => {
-            let mut config = starting_config(config, bundle)?;
-            config.sources = gdvae_node::sources::replay_sources(&inputs, speed).map_err(anyhow::Error::msg)?;
-            config.publish.zenoh = zenoh;
-            config.publish.jsonl = jsonl;
-            config.validate().map_err(anyhow::Error::msg)?;
-            let summary = run_pipeline(
-                &config,
-                RunOptions {
-                    lossless_publish: true,
-                    ..RunOptions::default()
-                },
-                false,
-            )?;
-            let baseline = if no_baseline {
-                None
-            } else {
-                let bundle = Bundle::load(&config.model.bundle)?;
-                let frames = summary
-                    .snapshot
-                    .streams
-                    .values()
-                    .map(|s| s.published)
-                    .sum::<u64>()
-                    .max(64) as usize;
-                Some(gdvae_node::benchmark::encoder_alone(&bundle, &config.model, frames)?)
-            };
-            print_report(&summary, baseline.as_ref().map(|b| (b, &config)), json)?;
-            require_states(&summary)
-        }
-        Command::Evaluate {
-            recordings,
-            config,
-            bundle,
-            set,
-            tolerance_frames,
-            keep_sensor_pose,
-            out,
-            plots,
-        } => evaluate(
-            &recordings,
-            starting_config(Some(config), bundle)?,
-            &set,
-            EvaluateOptions {
-                tolerance_frames,
-                pose_from_truth: !keep_sensor_pose,
-                ..EvaluateOptions::default()
-            },
-            out.as_deref(),
-            plots.as_deref(),
-        ),
-        Command::Encode {
-            file,
-            config,
-            bundle,
-            unit,
-            sampling,
-            onnxruntime,
-            seed,
-        } => {
-            let mut config = starting_config(config, bundle)?;
-            if let Some(sampling) = sampling {
-                config.prepare.sampling = match sampling {
-                    SamplingArg::Farthest => Sampling::Farthest,
-                    SamplingArg::Random => Sampling::Random,
-                    SamplingArg::Voxel => Sampling::Voxel,
-                };
-            }
-            if let Some(seed) = seed {
-                config.prepare.seed = seed;
-            }
-            let bundle = Bundle::load(&config.model.bundle)?;
-            let mut read = read_cloud(&file, &FileOptions::default())?;
-            let unit = match unit {
-                UnitArg::Metre => Unit::Metre,
-                UnitArg::Millimetre => Unit::Millimetre,
-            };
-            read.dropped_non_finite += gdvae_node::cloud::drop_implausible(&mut read.cloud.points, unit);
-            let points_read = read.cloud.len();
-            let frame = Frame {
-                stream: "file".into(),
-                sequence: 0,
-                sensor_stamp_ns: None,
-                ingested: std::time::Instant::now(),
-                ingest_unix_ns: 0,
-                unit,
-                cloud: PointCloud {
-                    points: read.cloud.points,
-                },
-            };
-            let preparer = Preparer::new(
-                &config.prepare,
-                bundle.manifest.sizes.points,
-                bundle.manifest.units.model_units_per_metre as f32,
-            );
-            let prepared = preparer
-                .prepare(&frame)
-                .with_context(|| format!("{}", file.display()))?;
-            let library = onnxruntime.or(config.model.onnxruntime.clone());
-            let mut encoder = Encoder::load(&bundle, library.as_deref(), config.model.threads, config.model.spin)?;
-            let encoding = encoder.encode(&[&prepared.points])?.remove(0);
-            if !encoding.is_finite() {
-                bail!("{}: the encoder's output is not finite", file.display());
-            }
-            let out = serde_json::json!({
-                "file": file.display().to_string(),
-                "points_read": points_read,
-                "points_kept": prepared.points_kept,
-                "dropped_non_finite": read.dropped_non_finite,
-                "centre_m": prepared.centre_m,
-                "yaw": gdvae_node::track::yaw_of(&encoding.q),
-                "encoding": encoding,
-            });
-            println!("{}", serde_json::to_string_pretty(&out)?);
-            Ok(())
-        }
-        Command::CheckConfig { config: path } => {
-            let config = Config::load(&path)?;
-            println!("{}: parsed and valid", path.display());
-            let bundle = Bundle::load(&config.model.bundle)?;
-            println!(
-                "bundle {}: {} regime, N_p {}, hashes match",
-                bundle.folder.display(),
-                bundle.manifest.model.regime,
-                bundle.manifest.sizes.points
-            );
-            Encoder::load(&bundle, config.model.onnxruntime.as_deref(), 1, false)?;
-            println!(
-                "ONNX Runtime: {}",
-                loaded_library().map(|p| p.display().to_string()).unwrap_or_default()
-            );
-            let mut unusable = Vec::new();
-            for source in &config.sources {
-                match gdvae_node::sources::check(source) {
-                    Ok(found) => println!("source '{}': {found}", source.stream),
-                    Err(message) if source.optional => {
-                        println!("source '{}' (optional) cannot start: {message}", source.stream)
-                    }
-                    Err(message) => {
-                        println!("source '{}' cannot start: {message}", source.stream);
-                        unusable.push(source.stream.clone());
-                    }
-                }
-            }
-            if !unusable.is_empty() {
-                bail!("source(s) {} cannot start; `run` would fail", unusable.join(", "));
-            }
-            if config.publish.zenoh {
-                println!(
-                    "publishing on {} (zenoh {}, {})",
-                    config.state_key("<stream>"),
-                    config.zenoh.mode,
-                    match config.publish.format {
-                        Format::Json => "JSON",
-                        Format::Cbor => "CBOR",
-                    }
-                );
-            }
-            Ok(())
-        }
+        Command::Run(args) => run_node(args),
+        Command::Replay(args) => replay(args),
+        Command::Evaluate(args) => evaluate(args),
+        Command::Encode(args) => encode(args),
+        Command::CheckConfig { config } => check_config(&config),
         Command::InspectModel {
             bundle,
             load,
             onnxruntime,
-        } => {
-            let bundle = Bundle::load(&bundle)?;
-            let m = &bundle.manifest;
-            println!("bundle {} (schema {})", bundle.folder.display(), m.schema_version);
-            println!(
-                "model: {} regime, {} autoencoder, {}, recipe {}",
-                m.model.regime, m.model.ae_type, m.model.supervision, m.model.recipe
-            );
-            let s = m.sizes;
-            println!(
-                "sizes: N_p {}, N_lambda {}, x_c {}, z_R {}, z_E {}, z_I {}",
-                s.points, s.spectrum, s.x_c, s.z_r, s.z_e, s.z_i
-            );
-            println!(
-                "units: {} model units per metre, {} centring, up {}, rotations {}",
-                m.units.model_units_per_metre, m.units.centering, m.units.up_axis, m.units.rotation_mode
-            );
-            for key in ["S", "C_X", "d_C", "heading_error_median_deg"] {
-                if let Some(value) = m.metrics.get(key).and_then(|v| v.as_f64()) {
-                    println!("metric {key}: {value:.4}");
-                }
+        } => inspect_model(&bundle, load, onnxruntime.as_deref()),
+    }
+}
+
+/// `run`: the daemon, as its config says.
+fn run_node(args: RunArgs) -> Result<()> {
+    let mut config = Config::read(&args.config)?;
+    if args.live_summary {
+        // The live summary owns stdout: no JSON lines there, no periodic summary in between.
+        if config.publish.jsonl.take().is_some() {
+            log::warn!("--live-summary: [publish] jsonl is off for this run");
+        }
+        config.pipeline.summary_seconds = 0.0;
+    }
+    let config = validated(config, &args.config)?;
+    if config.sources.is_empty() {
+        bail!("the config has no [[source]]; nothing to run");
+    }
+    let summary = run_pipeline(&config, RunOptions::default(), args.live_summary)?;
+    print_report(&summary, None, false)
+}
+
+/// `replay`: the inputs as fast as possible (or at `--speed`), every frame kept; the report.
+fn replay(args: ReplayArgs) -> Result<()> {
+    let (mut config, origin) = starting_config(args.config, args.bundle)?;
+    config.sources = gdvae_node::sources::replay_sources(&args.inputs, args.speed);
+    config.publish.zenoh = args.zenoh;
+    config.publish.jsonl = args.jsonl;
+    let config = validated(config, &origin)?;
+    let options = RunOptions {
+        lossless_publish: true,
+        ..RunOptions::default()
+    };
+    let summary = run_pipeline(&config, options, false)?;
+    let baseline = if args.no_baseline {
+        None
+    } else {
+        let bundle = Bundle::load(&config.model.bundle)?;
+        let frames = summary
+            .snapshot
+            .streams
+            .values()
+            .map(|s| s.published)
+            .sum::<u64>()
+            .max(64) as usize;
+        Some(gdvae_node::benchmark::encoder_alone(&bundle, &config.model, frames)?)
+    };
+    print_report(&summary, baseline.as_ref().map(|b| (b, &config)), args.json)?;
+    require_states(&summary)
+}
+
+/// `encode`: one file through prepare and the encoder; the codes as JSON.
+fn encode(args: EncodeArgs) -> Result<()> {
+    let (mut config, origin) = starting_config(args.config, args.bundle)?;
+    if let Some(sampling) = args.sampling {
+        config.prepare.sampling = match sampling {
+            SamplingArg::Farthest => Sampling::Farthest,
+            SamplingArg::Random => Sampling::Random,
+            SamplingArg::Voxel => Sampling::Voxel,
+        };
+    }
+    if let Some(seed) = args.seed {
+        config.prepare.seed = seed;
+    }
+    if let Some(library) = args.onnxruntime {
+        config.model.onnxruntime = Some(library);
+    }
+    let config = validated(config, &origin)?;
+    let file = args.file;
+    let bundle = Bundle::load(&config.model.bundle)?;
+    let mut read = read_cloud(&file, &FileOptions::default())?;
+    let unit = match args.unit {
+        UnitArg::Metre => Unit::Metre,
+        UnitArg::Millimetre => Unit::Millimetre,
+    };
+    read.dropped_non_finite += gdvae_node::cloud::drop_implausible(&mut read.cloud.points, unit);
+    let points_read = read.cloud.len();
+    let frame = Frame {
+        stream: "file".into(),
+        sequence: 0,
+        sensor_stamp_ns: None,
+        ingested: std::time::Instant::now(),
+        ingest_unix_ns: 0,
+        unit,
+        cloud: PointCloud {
+            points: read.cloud.points,
+        },
+    };
+    let preparer = Preparer::new(
+        &config.prepare,
+        bundle.manifest.sizes.points,
+        bundle.manifest.units.model_units_per_metre as f32,
+    );
+    let prepared = preparer
+        .prepare(&frame)
+        .with_context(|| format!("{}", file.display()))?;
+    let mut encoder = Encoder::load(
+        &bundle,
+        config.model.onnxruntime.as_deref(),
+        config.model.threads,
+        config.model.spin,
+    )?;
+    let encoding = encoder.encode(&[&prepared.points])?.remove(0);
+    if !encoding.is_finite() {
+        bail!("{}: the encoder's output is not finite", file.display());
+    }
+    let out = serde_json::json!({
+        "file": file.display().to_string(),
+        "points_read": points_read,
+        "points_kept": prepared.points_kept,
+        "dropped_non_finite": read.dropped_non_finite,
+        "centre_m": prepared.centre_m,
+        "yaw": gdvae_node::track::yaw_of(&encoding.q),
+        "encoding": encoding,
+    });
+    println!("{}", serde_json::to_string_pretty(&out)?);
+    Ok(())
+}
+
+/// `check-config`: everything a run checks before it starts, without running.
+fn check_config(path: &Path) -> Result<()> {
+    let config = Config::load(path)?;
+    println!("{}: parsed and valid", path.display());
+    let bundle = Bundle::load(&config.model.bundle)?;
+    println!(
+        "bundle {}: {} regime, N_p {}, hashes match",
+        bundle.folder.display(),
+        bundle.manifest.model.regime,
+        bundle.manifest.sizes.points
+    );
+    Encoder::load(&bundle, config.model.onnxruntime.as_deref(), 1, false)?;
+    println!(
+        "ONNX Runtime: {}",
+        loaded_library().map(|p| p.display().to_string()).unwrap_or_default()
+    );
+    let mut unusable = Vec::new();
+    for source in &config.sources {
+        match gdvae_node::sources::check(source) {
+            Ok(found) => println!("source '{}': {found}", source.stream),
+            Err(message) if source.optional => {
+                println!("source '{}' (optional) cannot start: {message}", source.stream)
             }
-            if load {
-                let encoder = Encoder::load(&bundle, onnxruntime.as_deref(), 1, false)?;
-                println!(
-                    "encoder {} loaded with ONNX Runtime from {}",
-                    encoder.file().display(),
-                    loaded_library().map(|p| p.display().to_string()).unwrap_or_default()
-                );
+            Err(message) => {
+                println!("source '{}' cannot start: {message}", source.stream);
+                unusable.push(source.stream.clone());
             }
-            Ok(())
         }
     }
+    if !unusable.is_empty() {
+        bail!("source(s) {} cannot start; `run` would fail", unusable.join(", "));
+    }
+    if config.publish.zenoh {
+        println!(
+            "publishing on {} (zenoh {}, {})",
+            config.state_key("<stream>"),
+            config.zenoh.mode,
+            match config.publish.format {
+                Format::Json => "JSON",
+                Format::Cbor => "CBOR",
+            }
+        );
+    }
+    let ros2 = &config.publish.ros2;
+    if ros2.enabled {
+        println!(
+            "publishing to ROS 2: node {}/{} in domain {}, topics {}",
+            ros2.namespace.trim_end_matches('/'),
+            ros2.node_name,
+            ros2.domain_id,
+            ros2.topic("<stream>", "{pose,markers,z_e,z_i,state,events,rejected}")
+        );
+    }
+    Ok(())
+}
+
+/// `inspect-model`: a bundle's manifest, checked, and optionally its encoder loaded.
+fn inspect_model(bundle: &Path, load: bool, onnxruntime: Option<&Path>) -> Result<()> {
+    let bundle = Bundle::load(bundle)?;
+    let m = &bundle.manifest;
+    println!("bundle {} (schema {})", bundle.folder.display(), m.schema_version);
+    println!(
+        "model: {} regime, {} autoencoder, {}, recipe {}",
+        m.model.regime, m.model.ae_type, m.model.supervision, m.model.recipe
+    );
+    let s = m.sizes;
+    println!(
+        "sizes: N_p {}, N_lambda {}, x_c {}, z_R {}, z_E {}, z_I {}",
+        s.points, s.spectrum, s.x_c, s.z_r, s.z_e, s.z_i
+    );
+    println!(
+        "units: {} model units per metre, {} centring, up {}, rotations {}",
+        m.units.model_units_per_metre, m.units.centering, m.units.up_axis, m.units.rotation_mode
+    );
+    for key in ["S", "C_X", "d_C", "heading_error_median_deg"] {
+        if let Some(value) = m.metrics.get(key).and_then(|v| v.as_f64()) {
+            println!("metric {key}: {value:.4}");
+        }
+    }
+    if load {
+        let encoder = Encoder::load(&bundle, onnxruntime, 1, false)?;
+        println!(
+            "encoder {} loaded with ONNX Runtime from {}",
+            encoder.file().display(),
+            loaded_library().map(|p| p.display().to_string()).unwrap_or_default()
+        );
+    }
+    Ok(())
 }
 
 /// `evaluate`: the recordings replayed through the pipeline, every state collected in process and
 /// measured against the ground truth.
-fn evaluate(
-    inputs: &[PathBuf],
-    mut config: Config,
-    set: &[String],
-    options: EvaluateOptions,
-    out: Option<&str>,
-    plots: Option<&Path>,
-) -> Result<()> {
-    config.track = track_overrides(&config.track, set)?;
-    let recordings = gdvae_node::evaluate::recordings(inputs)?;
+fn evaluate(args: EvaluateArgs) -> Result<()> {
+    let (mut config, origin) = starting_config(Some(args.config), args.bundle)?;
+    let options = EvaluateOptions {
+        tolerance_frames: args.tolerance_frames,
+        pose_from_truth: !args.keep_sensor_pose,
+        ..EvaluateOptions::default()
+    };
+    config.track = track_overrides(&config.track, &args.set)?;
+    let recordings = gdvae_node::evaluate::recordings(&args.recordings)?;
     for r in recordings.iter().filter(|r| r.truth.is_empty()) {
         log::warn!(
             "{}: no {} channel; reporting what needs no ground truth (identity changes, heading smoothness)",
@@ -414,10 +424,12 @@ fn evaluate(
             gdvae_node::evaluate::truth::GROUND_TRUTH_TOPIC
         );
     }
-    config.sources = gdvae_node::evaluate::sources(&recordings, &options)?;
+    config.sources = gdvae_node::evaluate::sources(&recordings, &options);
     config.publish.zenoh = false;
     config.publish.jsonl = None;
-    config.validate().map_err(anyhow::Error::msg)?;
+    config.publish.ros2.enabled = false;
+    let config = validated(config, &origin)?;
+    let (out, plots) = (args.out.as_deref(), args.plots.as_deref());
     let (tx, rx) = crossbeam_channel::unbounded();
     let options_run = RunOptions {
         lossless_publish: true,
@@ -617,15 +629,24 @@ fn require_states(summary: &RunSummary) -> Result<()> {
     )
 }
 
-/// The config a one-off command starts from: the given file or the defaults, with `--bundle` applied.
-fn starting_config(path: Option<PathBuf>, bundle: Option<PathBuf>) -> Result<Config> {
-    let mut config = match path {
-        Some(path) => Config::load(&path)?,
-        None => Config::default(),
+/// The config a one-off command starts from: the given file (read, not yet validated) or the
+/// defaults, with `--bundle` applied; and where it came from, for the error of its validation.
+fn starting_config(path: Option<PathBuf>, bundle: Option<PathBuf>) -> Result<(Config, PathBuf)> {
+    let (mut config, origin) = match path {
+        Some(path) => (Config::read(&path)?, path),
+        None => (Config::default(), PathBuf::from("(defaults)")),
     };
     if let Some(bundle) = bundle {
         config.model.bundle = bundle;
     }
+    Ok((config, origin))
+}
+
+/// The one validation of a config a command has finished adjusting.
+fn validated(config: Config, origin: &Path) -> Result<Config> {
+    config
+        .validate()
+        .map_err(|message| anyhow::anyhow!("{}: {message}", origin.display()))?;
     Ok(config)
 }
 
@@ -660,9 +681,7 @@ fn run_pipeline(config: &Config, options: RunOptions, live_summary: bool) -> Res
     }
     let stats = Arc::new(Stats::default());
     if live_summary {
-        let mut config = config.clone();
-        config.publish.jsonl = None;
-        return run_with_live_summary(&config, &bundle, session, stop, stats, options);
+        return run_with_live_summary(config, &bundle, session, stop, stats, options);
     }
     Ok(pipeline::run(config, &bundle, session, stop, stats, options)?)
 }

@@ -23,7 +23,7 @@ use crossbeam_channel::{bounded, Receiver, Select, Sender};
 use zenoh::{Session, Wait};
 
 use crate::bundle::Bundle;
-use crate::config::{Config, SourceKind};
+use crate::config::Config;
 use crate::prepare::{Prepared, Preparer};
 use crate::publish::Publisher;
 use crate::runtime::{Encoder, Encoding};
@@ -169,7 +169,7 @@ pub fn run(
         .with_sources(&config.sources),
     );
 
-    // Sources.
+    // Sources, subscriptions first: if one fails, no source thread has started yet.
     let mut threads: Vec<(String, JoinHandle<()>)> = Vec::new();
     let mut source_channels: Vec<(bool, Receiver<Ingest>)> = Vec::new();
     let mut subscribers: Vec<Box<dyn std::any::Any + Send>> = Vec::new();
@@ -177,74 +177,43 @@ pub fn run(
     let participants = session
         .as_ref()
         .map(|s| crate::ros2::Participants::new(s.clone(), &config.publish.ros2));
-    // Subscriptions first: if one fails, no source thread has started yet.
+    let context = sources::StartContext {
+        session: session.as_ref(),
+        participants: participants.as_ref(),
+        default_domain: config.publish.ros2.domain_id,
+        errors: Arc::default(),
+    };
     let mut ordered = starting;
     ordered.sort_by_key(|s| !s.is_subscription());
-    // Sources that stop with an error: (stream, reason, optional).
-    let source_errors: Arc<std::sync::Mutex<Vec<(String, String, bool)>>> = Arc::default();
     for source in ordered {
         let live = source.is_live();
         let (outlet, receiver) = Outlet::new(&source.stream, live, queue, stats.clone(), stop.clone());
         source_channels.push((live, receiver));
         stats.stream(&source.stream);
-        match source.kind {
-            SourceKind::Zenoh | SourceKind::Ros2 => {
-                let subscribed = match (&session, &participants) {
-                    (Some(session), Some(participants)) => subscribe(session, participants, config, source, outlet),
-                    _ => Err("no zenoh session".to_string()),
-                };
-                match subscribed {
-                    Ok((subscriber, what)) => {
-                        log::info!("source '{}': {what}", source.stream);
-                        subscribers.push(subscriber);
-                    }
-                    Err(e) if source.optional => {
-                        log::error!(
-                            "optional source '{}' cannot subscribe, running without it: {e}",
-                            source.stream
-                        );
-                        failed_sources.push((source.stream.clone(), format!("cannot subscribe: {e}")));
-                    }
-                    Err(message) => {
-                        return Err(PipelineError::Subscribe {
-                            stream: source.stream.clone(),
-                            message,
-                        })
-                    }
+        match sources::start(source, outlet, &context) {
+            Ok((running, what)) => {
+                log::info!("source '{}': {what}", source.stream);
+                match running {
+                    sources::Running::Thread(handle) => threads.push((format!("source:{}", source.stream), handle)),
+                    sources::Running::Subscription(subscription) => subscribers.push(subscription),
                 }
             }
-            SourceKind::Files | SourceKind::Mcap => {
-                let settings = source.clone();
-                let name = format!("source:{}", source.stream);
-                let errors = source_errors.clone();
-                let handle = std::thread::Builder::new()
-                    .name(name.clone())
-                    .spawn(move || {
-                        let stream = settings.stream.clone();
-                        // A panic while decoding ends this source with a logged error; the other
-                        // sources and the pipeline go on.
-                        let result = contained(&format!("source '{stream}'"), || match settings.kind {
-                            SourceKind::Files => sources::files::run(&settings, outlet).map_err(|e| e.to_string()),
-                            _ => sources::recording::run(&settings, outlet).map_err(|e| e.to_string()),
-                        })
-                        .and_then(|r| r);
-                        match result {
-                            Ok(()) => log::info!("source '{stream}': finished"),
-                            Err(e) => {
-                                log::error!("source '{stream}' stopped: {e}");
-                                errors.lock().unwrap_or_else(|e| e.into_inner()).push((
-                                    stream,
-                                    format!("stopped: {e}"),
-                                    settings.optional,
-                                ));
-                            }
-                        }
-                    })
-                    .map_err(|e| PipelineError::Thread(e.to_string()))?;
-                threads.push((name, handle));
+            Err(e) if source.optional => {
+                log::error!(
+                    "optional source '{}' cannot start, running without it: {e}",
+                    source.stream
+                );
+                failed_sources.push((source.stream.clone(), format!("cannot start: {e}")));
+            }
+            Err(message) => {
+                return Err(PipelineError::Source {
+                    stream: source.stream.clone(),
+                    message: format!("cannot start: {message}"),
+                })
             }
         }
     }
+    let source_errors = context.errors.clone();
 
     let (prepare_tx, prepare_rx) = bounded::<Ticketed<Ingest>>(queue);
     let (work_tx, work_rx) = bounded::<Ticketed<Work>>(queue);
@@ -427,32 +396,6 @@ pub fn run(
     })
 }
 
-/// Subscribes a network source (zenoh key or ROS 2 topic); the subscription, kept alive as long as
-/// it is held, and a line saying what it subscribed to.
-fn subscribe(
-    session: &Session,
-    participants: &crate::ros2::Participants,
-    config: &Config,
-    source: &crate::config::SourceSettings,
-    outlet: Outlet,
-) -> Result<(Box<dyn std::any::Any + Send>, String), String> {
-    if source.kind == SourceKind::Ros2 {
-        let domain = source.domain_id.unwrap_or(config.publish.ros2.domain_id);
-        let participant = participants.join(domain).map_err(|e| e.to_string())?;
-        let (topic, _) = sources::ros2_topic::topics(&participant, source);
-        let subscription = sources::ros2_topic::subscribe(participant, source, outlet).map_err(|e| e.to_string())?;
-        return Ok((
-            Box::new(subscription),
-            format!("ROS 2 topic {topic} in domain {domain}"),
-        ));
-    }
-    let subscriber = sources::zenoh::subscribe(session, source, outlet).map_err(|e| e.to_string())?;
-    Ok((
-        Box::new(subscriber),
-        format!("zenoh subscription to {}", source.key.as_deref().unwrap_or("")),
-    ))
-}
-
 type Depth = Box<dyn Fn() -> usize + Send + Sync>;
 
 /// How many items wait in a channel, read by the status queryable.
@@ -489,7 +432,7 @@ fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
 
 /// Runs one frame's work; a panic in it becomes an error naming the stage (the stage goes on
 /// with the next frame, and the frame is a counted rejection).
-fn contained<T>(stage: &str, work: impl FnOnce() -> T) -> Result<T, String> {
+pub(crate) fn contained<T>(stage: &str, work: impl FnOnce() -> T) -> Result<T, String> {
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(work)).map_err(|payload| {
         let message = format!("internal error in {stage}: {}", panic_message(payload.as_ref()));
         log::error!("{message}");

@@ -64,13 +64,11 @@ pub struct Recording {
 pub enum EvaluateError {
     #[error(transparent)]
     Truth(#[from] truth::TruthError),
-    #[error("{0}")]
-    Sources(String),
 }
 
 /// Reads each recording's ground truth and names its stream.
 pub fn recordings(inputs: &[PathBuf]) -> Result<Vec<Recording>, EvaluateError> {
-    let sources = crate::sources::replay_sources(inputs, 0.0).map_err(EvaluateError::Sources)?;
+    let sources = crate::sources::replay_sources(inputs, 0.0);
     sources
         .into_iter()
         .zip(inputs)
@@ -86,9 +84,9 @@ pub fn recordings(inputs: &[PathBuf]) -> Result<Vec<Recording>, EvaluateError> {
 
 /// The replay sources of `recordings` (as fast as possible, every frame), each with the sensor
 /// pose its ground truth gives when `pose_from_truth` is set.
-pub fn sources(recordings: &[Recording], options: &EvaluateOptions) -> Result<Vec<SourceSettings>, EvaluateError> {
+pub fn sources(recordings: &[Recording], options: &EvaluateOptions) -> Vec<SourceSettings> {
     let paths: Vec<PathBuf> = recordings.iter().map(|r| r.path.clone()).collect();
-    let mut sources = crate::sources::replay_sources(&paths, 0.0).map_err(EvaluateError::Sources)?;
+    let mut sources = crate::sources::replay_sources(&paths, 0.0);
     for (source, recording) in sources.iter_mut().zip(recordings) {
         source.stream = recording.stream.clone();
         let pose = recording.truth.first().and_then(|t| t.world_from_camera);
@@ -97,7 +95,7 @@ pub fn sources(recordings: &[Recording], options: &EvaluateOptions) -> Result<Ve
             source.sensor_to_gravity_translation = Some(pose.translation.map(|v| v as f32));
         }
     }
-    Ok(sources)
+    sources
 }
 
 /// One matched frame, what the plots draw.

@@ -468,16 +468,49 @@ pub fn list_files(path: &Path) -> Result<Vec<std::path::PathBuf>, FileError> {
     Ok(files)
 }
 
+/// `kind = "files"`: a point-cloud file, or a folder of them.
+#[derive(Debug, Clone, serde::Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct FilesSettings {
+    /// The file, or a folder whose point-cloud files are read in name order.
+    pub path: std::path::PathBuf,
+    /// Files have no timing: frames per second (0: as fast as the pipeline takes them).
+    #[serde(default)]
+    pub rate_hz: f64,
+    /// Start again at the end (a looping demo).
+    #[serde(default)]
+    pub repeat: bool,
+}
+
+impl FilesSettings {
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.rate_hz >= 0.0 && self.rate_hz.is_finite()) {
+            return Err(format!("rate_hz = {} must be finite and >= 0", self.rate_hz));
+        }
+        Ok(())
+    }
+
+    /// What the source checks before anything runs: its files exist.
+    pub fn check(&self) -> Result<String, String> {
+        list_files(&self.path)
+            .map(|files| format!("{} point-cloud file(s)", files.len()))
+            .map_err(|e| e.to_string())
+    }
+}
+
 /// Runs a files source: every file once (or repeatedly with `repeat`), paced at `rate_hz`
 /// (0: as fast as the pipeline takes them). A file that cannot be read is a rejection.
-pub fn run(settings: &crate::config::SourceSettings, mut outlet: super::Outlet) -> Result<(), FileError> {
-    let path = settings.path.as_deref().unwrap_or(Path::new(""));
-    let files = list_files(path)?;
+pub fn run(
+    source: &crate::config::SourceSettings,
+    settings: &FilesSettings,
+    mut outlet: super::Outlet,
+) -> Result<(), FileError> {
+    let files = list_files(&settings.path)?;
     let options = FileOptions {
-        max_points: settings.max_points,
+        max_points: source.max_points,
         ..FileOptions::default()
     };
-    let unit = settings.unit.unwrap_or(crate::cloud::Unit::Metre);
+    let unit = source.unit.unwrap_or(crate::cloud::Unit::Metre);
     let period = (settings.rate_hz > 0.0).then(|| std::time::Duration::from_secs_f64(1.0 / settings.rate_hz));
     let started = std::time::Instant::now();
     let mut sent = 0u32;

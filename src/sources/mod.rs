@@ -17,12 +17,13 @@ pub mod rosbag2;
 pub mod zenoh;
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 
 use crate::cloud::{Frame, PointCloud, Unit};
+use crate::config::{Input, SourceSettings};
 use crate::stats::Stats;
 
 /// A frame that will not reach the encoder, and why.
@@ -74,17 +75,87 @@ pub fn file_or_folder(path: &std::path::Path, extensions: &[&str]) -> std::io::R
 }
 
 /// What a source checks before anything runs: that its files exist and hold what it reads (a
-/// zenoh source is checked when it subscribes). A line saying what it found, or why it cannot start.
-pub fn check(source: &crate::config::SourceSettings) -> Result<String, String> {
-    use crate::config::SourceKind;
-    let path = source.path.as_deref().unwrap_or(std::path::Path::new(""));
-    match source.kind {
-        SourceKind::Files => files::list_files(path)
-            .map(|files| format!("{} point-cloud file(s)", files.len()))
-            .map_err(|e| e.to_string()),
-        SourceKind::Mcap => recording::check(source).map_err(|e| e.to_string()),
-        SourceKind::Zenoh => Ok(format!("zenoh key {}", source.key.as_deref().unwrap_or(""))),
-        SourceKind::Ros2 => Ok(format!("ROS 2 topic {}", source.topic.as_deref().unwrap_or(""))),
+/// network source is checked when it subscribes). A line saying what it found, or why it cannot start.
+pub fn check(source: &SourceSettings) -> Result<String, String> {
+    match &source.input {
+        Input::Files(own) => own.check(),
+        Input::Mcap(own) => recording::check(own).map_err(|e| e.to_string()),
+        Input::Zenoh(own) => Ok(format!("zenoh key {}", own.key)),
+        Input::Ros2(own) => Ok(format!("ROS 2 topic {}", own.topic)),
+    }
+}
+
+/// A started source: a thread of its own (files, recordings) or a subscription, open as long as
+/// it is held (zenoh, ROS 2).
+pub enum Running {
+    Thread(std::thread::JoinHandle<()>),
+    Subscription(Box<dyn std::any::Any + Send>),
+}
+
+/// What starting a source needs besides its settings.
+pub struct StartContext<'a> {
+    pub session: Option<&'a ::zenoh::Session>,
+    /// The node in ROS 2 domains, and the domain a ROS 2 source uses unless it names one.
+    pub participants: Option<&'a crate::ros2::Participants>,
+    pub default_domain: u32,
+    /// Where a source thread that stops with an error says so: (stream, reason, optional).
+    pub errors: Arc<Mutex<Vec<(String, String, bool)>>>,
+}
+
+/// Starts a source feeding `outlet`: its module's one way in. Returns it running and a line for
+/// the log; an error if it could not start.
+pub fn start(source: &SourceSettings, outlet: Outlet, context: &StartContext) -> Result<(Running, String), String> {
+    let no_session = || "no zenoh session".to_string();
+    match &source.input {
+        Input::Files(_) | Input::Mcap(_) => {
+            let settings = source.clone();
+            let errors = context.errors.clone();
+            let handle = std::thread::Builder::new()
+                .name(format!("source:{}", source.stream))
+                .spawn(move || {
+                    let stream = settings.stream.clone();
+                    // A panic while decoding ends this source with a logged error; the other
+                    // sources and the pipeline go on.
+                    let result = crate::pipeline::contained(&format!("source '{stream}'"), || match &settings.input {
+                        Input::Files(own) => files::run(&settings, own, outlet).map_err(|e| e.to_string()),
+                        Input::Mcap(own) => recording::run(&settings, own, outlet).map_err(|e| e.to_string()),
+                        _ => unreachable!("network sources subscribe"),
+                    })
+                    .and_then(|r| r);
+                    match result {
+                        Ok(()) => log::info!("source '{stream}': finished"),
+                        Err(e) => {
+                            log::error!("source '{stream}' stopped: {e}");
+                            errors.lock().unwrap_or_else(|e| e.into_inner()).push((
+                                stream,
+                                format!("stopped: {e}"),
+                                settings.optional,
+                            ));
+                        }
+                    }
+                })
+                .map_err(|e| e.to_string())?;
+            Ok((Running::Thread(handle), "started".into()))
+        }
+        Input::Zenoh(own) => {
+            let session = context.session.ok_or_else(no_session)?;
+            let subscriber = zenoh::subscribe(session, source, own, outlet).map_err(|e| e.to_string())?;
+            Ok((
+                Running::Subscription(Box::new(subscriber)),
+                format!("zenoh subscription to {}", own.key),
+            ))
+        }
+        Input::Ros2(own) => {
+            let participants = context.participants.ok_or_else(no_session)?;
+            let domain = own.domain_id.unwrap_or(context.default_domain);
+            let participant = participants.join(domain).map_err(|e| e.to_string())?;
+            let (topic, _) = ros2_topic::topics(&participant, own);
+            let subscription = ros2_topic::subscribe(participant, source, own, outlet).map_err(|e| e.to_string())?;
+            Ok((
+                Running::Subscription(Box::new(subscription)),
+                format!("ROS 2 topic {topic} in domain {domain}"),
+            ))
+        }
     }
 }
 
@@ -233,10 +304,9 @@ impl Outlet {
 /// One replay source per input, named after its file stem (made unique): MCAP and rosbag2 files
 /// and folders replay their point clouds, other files and folders are point-cloud files. `speed` as in
 /// `[[source]] speed` (0 = as fast as possible).
-pub fn replay_sources(inputs: &[std::path::PathBuf], speed: f64) -> Result<Vec<crate::config::SourceSettings>, String> {
-    let mut sources: Vec<crate::config::SourceSettings> = Vec::new();
+pub fn replay_sources(inputs: &[std::path::PathBuf], speed: f64) -> Vec<SourceSettings> {
+    let mut sources: Vec<SourceSettings> = Vec::new();
     for input in inputs {
-        let is_recording = recording::is_recording(input);
         let stem = input
             .file_stem()
             .and_then(|s| s.to_str())
@@ -248,14 +318,17 @@ pub fn replay_sources(inputs: &[std::path::PathBuf], speed: f64) -> Result<Vec<c
             n += 1;
             stream = format!("{stem}_{n}");
         }
-        let mut source: crate::config::SourceSettings = toml::from_str(&format!(
-            "stream = {stream:?}\nkind = {:?}\npath = {:?}",
-            if is_recording { "mcap" } else { "files" },
-            input.display().to_string()
-        ))
-        .map_err(|e| format!("{}: building a replay source: {e}", input.display()))?;
-        source.speed = speed;
-        sources.push(source);
+        let input = if recording::is_recording(input) {
+            Input::Mcap(recording::RecordingSettings::replay(input.clone(), speed))
+        } else {
+            // Files have no timing of their own: as fast as possible.
+            Input::Files(files::FilesSettings {
+                path: input.clone(),
+                rate_hz: 0.0,
+                repeat: false,
+            })
+        };
+        sources.push(SourceSettings::new(stream, input));
     }
-    Ok(sources)
+    sources
 }

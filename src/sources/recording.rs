@@ -24,6 +24,61 @@ const POINT_CLOUD2: &str = "sensor_msgs/msg/PointCloud2";
 const IMAGE: &str = "sensor_msgs/msg/Image";
 const CAMERA_INFO: &str = "sensor_msgs/msg/CameraInfo";
 
+/// `kind = "mcap"` (alias `"rosbag2"`): a recording replayed.
+#[derive(Debug, Clone, serde::Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct RecordingSettings {
+    /// An .mcap file, a .db3 file, or a rosbag2 folder.
+    pub path: PathBuf,
+    /// The PointCloud2 topic (default: the first one), or a depth Image topic.
+    #[serde(default)]
+    pub topic: Option<String>,
+    /// A depth image's CameraInfo topic (default: `<image topic's parent>/camera_info`).
+    #[serde(default)]
+    pub camera_info_topic: Option<String>,
+    /// Depth images: keep every `depth_step`-th pixel in each direction.
+    #[serde(default = "default_depth_step")]
+    pub depth_step: usize,
+    /// 1 = original timing, 2 = twice as fast, 0 = as fast as the pipeline takes the frames.
+    #[serde(default = "default_speed")]
+    pub speed: f64,
+    /// Start again at the end (a looping demo); a replay benchmark leaves it off.
+    #[serde(default)]
+    pub repeat: bool,
+}
+
+pub(crate) fn default_depth_step() -> usize {
+    2
+}
+
+fn default_speed() -> f64 {
+    1.0
+}
+
+impl RecordingSettings {
+    /// A recording replayed as fast as possible, once.
+    pub fn replay(path: PathBuf, speed: f64) -> Self {
+        Self {
+            path,
+            topic: None,
+            camera_info_topic: None,
+            depth_step: default_depth_step(),
+            speed,
+            repeat: false,
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.speed >= 0.0 && self.speed.is_finite()) {
+            return Err(format!("speed = {} must be finite and >= 0", self.speed));
+        }
+        if self.depth_step == 0 {
+            return Err("depth_step must be at least 1".into());
+        }
+        Ok(())
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum RecordingError {
     #[error("{path}: {source}")]
@@ -218,7 +273,11 @@ impl Wanted {
     }
 }
 
-fn choose_topic(settings: &SourceSettings, topics: &[(String, String)], path: &Path) -> Result<Wanted, RecordingError> {
+fn choose_topic(
+    settings: &RecordingSettings,
+    topics: &[(String, String)],
+    path: &Path,
+) -> Result<Wanted, RecordingError> {
     let listing = || {
         topics
             .iter()
@@ -263,9 +322,8 @@ fn choose_topic(settings: &SourceSettings, topics: &[(String, String)], path: &P
 
 /// What a replay checks before anything runs: the recording's files, and in each the topic it
 /// will replay. A one-line description for the log and `check-config`.
-pub fn check(settings: &SourceSettings) -> Result<String, RecordingError> {
-    let path = settings.path.clone().unwrap_or_default();
-    let files = recording_files(&path)?;
+pub fn check(settings: &RecordingSettings) -> Result<String, RecordingError> {
+    let files = recording_files(&settings.path)?;
     let mut chosen = Vec::new();
     for file in &files {
         let topic = match choose_topic(settings, &topics(file)?, &file.path)? {
@@ -289,7 +347,8 @@ pub fn check(settings: &SourceSettings) -> Result<String, RecordingError> {
 
 /// The per-message half of a replay: decodes the wanted topics, paces them, sends them on.
 struct Replayer<'a> {
-    settings: &'a SourceSettings,
+    settings: &'a RecordingSettings,
+    max_points: usize,
     outlet: &'a mut Outlet,
     unit: Unit,
     /// Original timing: message i is due at start + (log_time_i - log_time_0) / speed.
@@ -309,7 +368,7 @@ impl Replayer<'_> {
         let topic: &str = &message.topic;
         let decoded = match wanted {
             Wanted::Clouds(t) if topic == t => Some(
-                decode_point_cloud2(&message.data, settings.max_points)
+                decode_point_cloud2(&message.data, self.max_points)
                     .map(|c| (c.header.stamp_ns, c.points, c.dropped_non_finite)),
             ),
             Wanted::Depth { info, .. } if topic == info => {
@@ -320,7 +379,7 @@ impl Replayer<'_> {
                 // An image that came just before its camera's first CameraInfo goes now.
                 match (&self.intrinsics, self.waiting.take()) {
                     (Some(k), Some(image)) => Some(
-                        decode_depth_image(&image, k, settings.depth_step, settings.max_points)
+                        decode_depth_image(&image, k, settings.depth_step, self.max_points)
                             .map(|c| (c.header.stamp_ns, c.points, c.dropped_non_finite)),
                     ),
                     (_, image) => {
@@ -331,7 +390,7 @@ impl Replayer<'_> {
             }
             Wanted::Depth { image, .. } if topic == image => match &self.intrinsics {
                 Some(k) => Some(
-                    decode_depth_image(&message.data, k, settings.depth_step, settings.max_points)
+                    decode_depth_image(&message.data, k, settings.depth_step, self.max_points)
                         .map(|c| (c.header.stamp_ns, c.points, c.dropped_non_finite)),
                 ),
                 None => {
@@ -370,14 +429,14 @@ impl Replayer<'_> {
 /// Replays the recording into `outlet`. Errors opening the recording end the source; a message
 /// that does not decode is a rejection and the replay goes on; a cut or damaged rest of a file is
 /// one rejection after every message before it was replayed.
-pub fn run(settings: &SourceSettings, mut outlet: Outlet) -> Result<(), RecordingError> {
-    let path = settings.path.clone().unwrap_or_default();
-    let files = recording_files(&path)?;
+pub fn run(source: &SourceSettings, settings: &RecordingSettings, mut outlet: Outlet) -> Result<(), RecordingError> {
+    let files = recording_files(&settings.path)?;
     loop {
         let mut replayer = Replayer {
             settings,
+            max_points: source.max_points,
             outlet: &mut outlet,
-            unit: settings.unit.unwrap_or(Unit::Metre),
+            unit: source.unit.unwrap_or(Unit::Metre),
             clock: None,
             intrinsics: None,
             waiting: None,

@@ -20,6 +20,51 @@ use crate::ros2::{msg, Participant};
 use crate::sources::ros2::{decode_camera_info, decode_depth_image, decode_point_cloud2, CameraIntrinsics};
 use crate::sources::Outlet;
 
+/// `kind = "ros2"`: a ROS 2 topic.
+#[derive(Debug, Clone, serde::Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct Ros2TopicSettings {
+    /// The topic, e.g. "/camera/points" (relative names resolve in `[publish.ros2] namespace`).
+    pub topic: String,
+    /// A depth image's CameraInfo topic (default: `<image topic's parent>/camera_info`).
+    #[serde(default)]
+    pub camera_info_topic: Option<String>,
+    /// Depth images: keep every `depth_step`-th pixel in each direction.
+    #[serde(default = "super::recording::default_depth_step")]
+    pub depth_step: usize,
+    /// The ROS 2 domain (default: `[publish.ros2] domain_id`).
+    #[serde(default)]
+    pub domain_id: Option<u32>,
+}
+
+/// A ROS 2 topic name: segments of letters, digits and underscores, not starting with a digit.
+fn is_topic(name: &str) -> bool {
+    !name.is_empty()
+        && name.trim_start_matches('/').split('/').all(|part| {
+            part.chars().next().is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+                && part.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+        })
+}
+
+impl Ros2TopicSettings {
+    pub fn validate(&self) -> Result<(), String> {
+        for name in std::iter::once(&self.topic).chain(&self.camera_info_topic) {
+            if !is_topic(name) {
+                return Err(format!(
+                    "'{name}' is not a ROS 2 topic name like \"/camera/points\" (letters, digits, underscores)"
+                ));
+            }
+        }
+        if self.depth_step == 0 {
+            return Err("depth_step must be at least 1".into());
+        }
+        if self.domain_id.is_some_and(|d| d > 232) {
+            return Err("domain_id must be within 0..=232".into());
+        }
+        Ok(())
+    }
+}
+
 /// The subscriptions of one ROS 2 source; they end when it is dropped.
 pub struct Ros2Subscription {
     _data: zenoh::pubsub::Subscriber<()>,
@@ -29,9 +74,9 @@ pub struct Ros2Subscription {
 }
 
 /// The topics a source reads: its data topic and the CameraInfo topic of a depth image, absolute.
-pub fn topics(participant: &Participant, settings: &SourceSettings) -> (String, String) {
+pub fn topics(participant: &Participant, settings: &Ros2TopicSettings) -> (String, String) {
     let node = participant.node();
-    let topic = node.resolve(settings.topic.as_deref().unwrap_or(""));
+    let topic = node.resolve(&settings.topic);
     let info = match &settings.camera_info_topic {
         Some(info) => node.resolve(info),
         None => format!("{}/camera_info", topic.rsplit_once('/').map(|(p, _)| p).unwrap_or("")),
@@ -41,7 +86,8 @@ pub fn topics(participant: &Participant, settings: &SourceSettings) -> (String, 
 
 pub fn subscribe(
     participant: Arc<Participant>,
-    settings: &SourceSettings,
+    source: &SourceSettings,
+    settings: &Ros2TopicSettings,
     outlet: Outlet,
 ) -> Result<Ros2Subscription, zenoh::Error> {
     let (topic, info_topic) = topics(&participant, settings);
@@ -68,9 +114,9 @@ pub fn subscribe(
 
     let data = {
         let (max_points, depth_step, unit) = (
-            settings.max_points,
+            source.max_points,
             settings.depth_step,
-            settings.unit.unwrap_or(Unit::Metre),
+            source.unit.unwrap_or(Unit::Metre),
         );
         let outlet = Mutex::new(outlet);
         let topic = topic.clone();

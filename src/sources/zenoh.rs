@@ -11,23 +11,62 @@ use zenoh::sample::Sample;
 use zenoh::{Session, Wait};
 
 use crate::cloud::{PointCloud, Unit};
-use crate::config::{SourceSettings, WireFormat};
+use serde::{Deserialize, Serialize};
+
+use crate::config::SourceSettings;
 use crate::sources::ros2::decode_point_cloud2;
 use crate::sources::Outlet;
 
 /// The DepthAI harness's encoding schema (see sim/depthai_feed.py).
 pub const DEPTHAI_SCHEMA: &str = "depthai/PointCloudData;xyz_f32_mm";
 
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WireFormat {
+    /// Decide per sample from its zenoh encoding (none, as rmw_zenoh sends: CDR).
+    Auto,
+    /// ROS 2 sensor_msgs/msg/PointCloud2 in CDR.
+    Cdr,
+    /// The DepthAI harness: float32 x, y, z in millimetres.
+    Depthai,
+}
+
+/// `kind = "zenoh"`: a zenoh key expression.
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct ZenohSourceSettings {
+    /// Key expression to subscribe to.
+    pub key: String,
+    #[serde(default = "auto")]
+    pub format: WireFormat,
+}
+
+fn auto() -> WireFormat {
+    WireFormat::Auto
+}
+
+impl ZenohSourceSettings {
+    pub fn validate(&self) -> Result<(), String> {
+        if self.key.is_empty() {
+            return Err("a zenoh source needs `key`".into());
+        }
+        zenoh::key_expr::KeyExpr::try_from(self.key.as_str())
+            .map(|_| ())
+            .map_err(|e| format!("key '{}' is not a zenoh key expression: {e}", self.key))
+    }
+}
+
 /// Subscribes `outlet` to the source's key. The subscription lives as long as the returned value.
 pub fn subscribe(
     session: &Session,
-    settings: &SourceSettings,
+    source: &SourceSettings,
+    settings: &ZenohSourceSettings,
     outlet: Outlet,
 ) -> Result<zenoh::pubsub::Subscriber<()>, zenoh::Error> {
-    let key = settings.key.clone().unwrap_or_default();
+    let key = settings.key.clone();
     let format = settings.format;
-    let max_points = settings.max_points;
-    let unit_override = settings.unit;
+    let max_points = source.max_points;
+    let unit_override = source.unit;
     let outlet = Mutex::new(outlet);
     session
         .declare_subscriber(key)

@@ -1,6 +1,6 @@
 //! The shipped configs parse and validate; typos and bad values are refused with the key named.
 
-use gdvae_node::config::{Config, SourceKind};
+use gdvae_node::config::{Config, Input};
 
 use crate::helpers::repo;
 
@@ -23,9 +23,11 @@ fn the_default_config_replays_the_sample_with_the_shipped_bundle() {
     let config = Config::load(&repo().join("config/default.toml")).unwrap();
     assert!(config.model.bundle.join("manifest.json").is_file());
     let source = &config.sources[0];
-    assert_eq!(source.kind, SourceKind::Mcap);
+    let Input::Mcap(recording) = &source.input else {
+        panic!("the default source replays the sample recording")
+    };
     assert!(
-        source.path.as_ref().unwrap().is_file(),
+        recording.path.is_file(),
         "relative paths resolve against the config's folder"
     );
     assert!(config.publish.zenoh && config.zenoh.mode == "peer" && config.zenoh.connect.is_empty());
@@ -81,15 +83,23 @@ fn bad_values_are_refused_with_the_key_named() {
         ("[publish.ros2]\nnode_name = \"edge-node\"\n", "publish.ros2.node_name"),
         ("[publish.ros2]\ndomain_id = 300\n", "publish.ros2.domain_id"),
         ("[publish.ros2]\nframe_id = \"\"\n", "publish.ros2.frame_id"),
-        ("[[source]]\nstream = \"a\"\nkind = \"ros2\"\n", "a ros2 source needs `topic`"),
+        ("[[source]]\nstream = \"a\"\nkind = \"ros2\"\n", "source 'a' (ros2): missing field `topic`"),
         (
             "[[source]]\nstream = \"a\"\nkind = \"ros2\"\ntopic = \"/camera/points*\"\n",
-            "a ros2 source needs `topic`",
+            "not a ROS 2 topic name",
         ),
+        (
+            "[[source]]\nstream = \"a\"\nkind = \"files\"\npath = \"x\"\nkey = \"k\"\n",
+            "source 'a' (files): unknown field `key`",
+        ),
+        ("[[source]]\nstream = \"a\"\nkind = \"zenoh\"\nkey = \"a//b\"\n", "not a zenoh key expression"),
     ];
     for (text, expected) in cases {
-        let config = Config::parse(text).unwrap();
-        let error = config.validate().unwrap_err();
+        // A key a kind lacks is refused when parsed; a bad value when validated.
+        let error = match Config::parse(text) {
+            Ok(config) => config.validate().unwrap_err(),
+            Err(error) => error,
+        };
         assert!(
             error.contains(expected),
             "{text:?}: '{error}' should mention {expected}"
