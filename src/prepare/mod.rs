@@ -8,18 +8,20 @@
 
 mod filters;
 mod sampling;
+mod settings;
 
 pub use filters::{crop, fit_ground, keep_largest_cluster, levelling, remove_outliers, remove_plane, transform, Plane};
 pub use sampling::{
     centre_and_scale, farthest_point_sampling, random_sampling, subsample, voxel_sampling, PrepareError, Sampling,
 };
+pub use settings::{check_rotation, OutlierMethod, OutlierSettings, PrepareSettings};
 
 use std::collections::HashMap;
 
 use nalgebra::{Matrix3, Vector3};
 
 use crate::cloud::Frame;
-use crate::config::{PrepareSettings, SourceSettings};
+use crate::sources::SourceSettings;
 
 /// A frame ready for the encoder.
 #[derive(Debug, Clone)]

@@ -14,11 +14,53 @@ mod zenoh_sink;
 
 use zenoh::{Session, Wait};
 
+use serde::{Deserialize, Serialize};
+
 use crate::bundle::Bundle;
-use crate::config::{Config, Format};
+use crate::config::Config;
 use crate::state::Output;
 
 pub use ros2::Ros2Settings;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Format {
+    Json,
+    Cbor,
+}
+
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PublishSettings {
+    /// Publish states on zenoh (`<prefix>/<node>/<stream>/state`).
+    pub zenoh: bool,
+    pub format: Format,
+    /// Also write one JSON line per state: a file path, or "-" for stdout.
+    pub jsonl: Option<String>,
+    /// The node as a ROS 2 node over rmw_zenoh (`[publish.ros2]`).
+    pub ros2: Ros2Settings,
+}
+
+impl PublishSettings {
+    /// Checks every sink's settings; the message names the key.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.jsonl.as_deref() == Some("") {
+            return Err("publish.jsonl must be a file path or \"-\" (stdout)".into());
+        }
+        self.ros2.validate()
+    }
+}
+
+impl Default for PublishSettings {
+    fn default() -> Self {
+        Self {
+            zenoh: true,
+            format: Format::Json,
+            jsonl: None,
+            ros2: Ros2Settings::default(),
+        }
+    }
+}
 
 #[derive(Debug, thiserror::Error)]
 pub enum PublishError {

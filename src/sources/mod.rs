@@ -14,6 +14,7 @@ pub mod recording;
 pub mod ros2;
 pub mod ros2_topic;
 pub mod rosbag2;
+mod settings;
 pub mod zenoh;
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -23,8 +24,8 @@ use std::time::Instant;
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 
 use crate::cloud::{Frame, PointCloud, Unit};
-use crate::config::{Input, SourceSettings};
 use crate::stats::Stats;
+pub use settings::{Input, SourceKind, SourceSettings};
 
 /// A frame that will not reach the encoder, and why.
 #[derive(Debug, Clone)]

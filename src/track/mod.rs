@@ -11,12 +11,14 @@
 pub mod heading;
 pub mod pose;
 pub mod shape;
+mod state;
 
 use serde::{Deserialize, Serialize};
 
 pub use heading::{Heading, HeadingFilter};
 pub use pose::{confidence_from_log_variance, unwrap, yaw_of, OneEuro, Pose, PoseFilter};
 pub use shape::{IdentityChange, ShapeFilter, ShapeUpdate};
+pub use state::Observed;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "kebab-case")]

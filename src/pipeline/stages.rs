@@ -1,0 +1,307 @@
+//! The stage bodies, each run on its own thread(s) by `pipeline::run`: ingest (tickets), prepare,
+//! batcher, encode, track (ticket order, the stream's filters, the published state).
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use crossbeam_channel::{Receiver, Select, Sender};
+
+use super::faults::contained;
+use super::work::*;
+use crate::config::Config;
+use crate::prepare::Preparer;
+use crate::runtime::Encoder;
+use crate::sources::Ingest;
+use crate::state::{self, Output};
+use crate::stats::Stats;
+use crate::track::{Observed, StreamTracker};
+
+/// Reads every source channel; gives each item its ticket. Ends when every source has ended, or
+/// after stop once the live sources' queues are empty.
+pub(super) fn ingest(
+    mut channels: Vec<(bool, Receiver<Ingest>)>,
+    out: Sender<Ticketed<Ingest>>,
+    stop: &AtomicBool,
+    first: &std::sync::OnceLock<Instant>,
+) {
+    let mut ticket = 0u64;
+    while !channels.is_empty() {
+        if stop.load(Ordering::Relaxed) {
+            channels.retain(|(live, rx)| !(*live && rx.is_empty()));
+            if channels.is_empty() {
+                break;
+            }
+        }
+        let mut select = Select::new();
+        for (_, rx) in &channels {
+            select.recv(rx);
+        }
+        let Ok(operation) = select.select_timeout(Duration::from_millis(50)) else {
+            continue;
+        };
+        let index = operation.index();
+        match operation.recv(&channels[index].1) {
+            Ok(item) => {
+                first.get_or_init(Instant::now);
+                if out.send((ticket, item)).is_err() {
+                    return;
+                }
+                ticket += 1;
+            }
+            Err(_) => {
+                channels.remove(index);
+            }
+        }
+    }
+}
+
+pub(super) fn prepare(rx: Receiver<Ticketed<Ingest>>, tx: Sender<Ticketed<Work>>, preparer: &Preparer, stats: &Stats) {
+    for (ticket, item) in rx {
+        let work = match item {
+            Ingest::Rejected(r) => Work::Rejected(r),
+            Ingest::Frame(frame) => {
+                let start = Instant::now();
+                let result = contained("prepare", || preparer.prepare(&frame));
+                let prepare_ms = ms_since(start);
+                stats.record("prepare", prepare_ms);
+                match result {
+                    Err(message) => Work::Rejected(origin_of(&frame).reject("prepare", message)),
+                    Ok(Ok(prepared)) => Work::Frame(PreparedFrame {
+                        origin: origin_of(&frame),
+                        prepared,
+                        prepare_ms,
+                        prepared_at: Instant::now(),
+                    }),
+                    Ok(Err(e)) => Work::Rejected(
+                        origin_of(&frame).reject("prepare", format!("{} points received: {e}", frame.cloud.len())),
+                    ),
+                }
+            }
+        };
+        if tx.send((ticket, work)).is_err() {
+            return;
+        }
+    }
+}
+
+/// Groups prepared frames into batches of up to `max_batch`, waiting at most `max_wait` after the
+/// first frame of a batch for more.
+pub(super) fn batcher(
+    rx: Receiver<Ticketed<Work>>,
+    batches: Sender<Vec<Ticketed<PreparedFrame>>>,
+    done: Sender<Ticketed<Done>>,
+    max_batch: usize,
+    max_wait: Duration,
+    stats: &Stats,
+) {
+    let mut batch: Vec<Ticketed<PreparedFrame>> = Vec::with_capacity(max_batch);
+    let mut deadline = None;
+    loop {
+        let received = match deadline {
+            None => rx.recv().map_err(|_| true),
+            Some(deadline) => rx.recv_deadline(deadline).map_err(|e| e.is_disconnected()),
+        };
+        match received {
+            Ok((ticket, Work::Rejected(r))) => {
+                if done.send((ticket, Done::Rejected(r))).is_err() {
+                    return;
+                }
+            }
+            Ok((ticket, Work::Frame(frame))) => {
+                if batch.is_empty() {
+                    deadline = Some(Instant::now() + max_wait);
+                }
+                batch.push((ticket, frame));
+            }
+            Err(disconnected) => {
+                if !batch.is_empty() {
+                    stats.record_batch(batch.len());
+                    if batches.send(std::mem::take(&mut batch)).is_err() {
+                        return;
+                    }
+                }
+                deadline = None;
+                if disconnected {
+                    return;
+                }
+                continue;
+            }
+        }
+        if batch.len() >= max_batch {
+            stats.record_batch(batch.len());
+            if batches.send(std::mem::take(&mut batch)).is_err() {
+                return;
+            }
+            deadline = None;
+        }
+    }
+}
+
+pub(super) fn encode(
+    rx: Receiver<Vec<Ticketed<PreparedFrame>>>,
+    tx: Sender<Ticketed<Done>>,
+    mut encoder: Encoder,
+    stats: &Stats,
+) {
+    for batch in rx {
+        let start = Instant::now();
+        let clouds: Vec<&[[f32; 3]]> = batch.iter().map(|(_, f)| f.prepared.points.as_slice()).collect();
+        let result = contained("encode", || encoder.encode(&clouds)).and_then(|r| r.map_err(|e| e.to_string()));
+        let encode_ms = ms_since(start);
+        stats.record("encode", encode_ms);
+        match result {
+            Ok(encodings) => {
+                for ((ticket, frame), encoding) in batch.into_iter().zip(encodings) {
+                    if !encoding.is_finite() {
+                        let rejection = frame
+                            .origin
+                            .reject("encode", "the encoder's output is not finite".into());
+                        if tx.send((ticket, Done::Rejected(rejection))).is_err() {
+                            return;
+                        }
+                        continue;
+                    }
+                    let queue_ms = (start - frame.prepared_at).as_secs_f32() * 1000.0;
+                    stats.record("queue", queue_ms);
+                    let encoded = EncodedFrame {
+                        origin: frame.origin,
+                        prepared: frame.prepared,
+                        encoding,
+                        prepare_ms: frame.prepare_ms,
+                        queue_ms,
+                        encode_ms,
+                    };
+                    if tx.send((ticket, Done::Encoded(Box::new(encoded)))).is_err() {
+                        return;
+                    }
+                }
+            }
+            Err(e) => {
+                for (ticket, frame) in batch {
+                    let rejection = frame.origin.reject("encode", e.clone());
+                    if tx.send((ticket, Done::Rejected(rejection))).is_err() {
+                        return;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Per-stream state of the track stage: the filters and the bookkeeping around them.
+pub(super) struct Stream {
+    tracker: StreamTracker,
+    last_stamp_ns: Option<u64>,
+    rejections_logged: u64,
+}
+
+pub(super) fn track(
+    rx: Receiver<Ticketed<Done>>,
+    tx: Sender<(Output, Instant, Instant)>,
+    config: &Config,
+    stats: &Stats,
+) {
+    let mut pending: BTreeMap<u64, Done> = BTreeMap::new();
+    let mut next = 0u64;
+    let mut trackers: HashMap<String, Stream> = HashMap::new();
+    let settings = &config.track;
+    let node = config.node.name.clone();
+    let nominal_dt = 1.0 / settings.nominal_rate_hz;
+    for (ticket, done) in rx {
+        pending.insert(ticket, done);
+        while let Some(done) = pending.remove(&next) {
+            next += 1;
+            let start = Instant::now();
+            let (stream, ingested) = match &done {
+                Done::Encoded(f) => (f.origin.stream.clone(), f.origin.ingested),
+                Done::Rejected(r) => (r.stream.clone(), r.ingested),
+            };
+            let tracker = trackers.entry(stream.clone()).or_insert_with(|| Stream {
+                tracker: StreamTracker::new(settings),
+                last_stamp_ns: None,
+                rejections_logged: 0,
+            });
+            let output = match done {
+                Done::Rejected(r) => {
+                    stats.stream(&r.stream).add_rejected(r.stage);
+                    tracker.rejections_logged += 1;
+                    let n = tracker.rejections_logged;
+                    if n <= 10 || n % 100 == 0 {
+                        log::warn!(
+                            "stream '{}' frame {} rejected at {} ({n} so far): {}",
+                            r.stream,
+                            r.sequence,
+                            r.stage,
+                            r.reason
+                        );
+                    }
+                    rejected_output(&node, r)
+                }
+                Done::Encoded(frame) => {
+                    let dt = match (frame.origin.sensor_stamp_ns, tracker.last_stamp_ns) {
+                        (Some(now), Some(last)) if now > last && now - last < 1_000_000_000 => {
+                            (now - last) as f32 * 1e-9
+                        }
+                        _ => nominal_dt,
+                    };
+                    if frame.origin.sensor_stamp_ns.is_some() {
+                        tracker.last_stamp_ns = frame.origin.sensor_stamp_ns;
+                    }
+                    let observed = Observed {
+                        stream: &frame.origin.stream,
+                        sequence: frame.origin.sequence,
+                        sensor_stamp_ns: frame.origin.sensor_stamp_ns,
+                        ingest_unix_ns: frame.origin.ingest_unix_ns,
+                        points_received: frame.origin.points_received,
+                        points_kept: frame.prepared.points_kept,
+                        centre_m: frame.prepared.centre_m,
+                        encoding: &frame.encoding,
+                        latency: state::StageLatency {
+                            prepare_ms: frame.prepare_ms,
+                            queue_ms: frame.queue_ms,
+                            encode_ms: frame.encode_ms,
+                            total_ms: 0.0, // measured by the publisher
+                        },
+                    };
+                    match contained("track", || tracker.tracker.state(&node, &observed, dt)) {
+                        Ok(state) => Output::State(Box::new(state)),
+                        Err(message) => {
+                            // The stream's filters may be half updated: start them afresh.
+                            tracker.tracker = StreamTracker::new(settings);
+                            stats.stream(&frame.origin.stream).add_rejected("track");
+                            rejected_output(&node, frame.origin.reject("track", message))
+                        }
+                    }
+                }
+            };
+            stats.record("track", ms_since(start));
+            if tx.send((output, Instant::now(), ingested)).is_err() {
+                return;
+            }
+        }
+    }
+    if !pending.is_empty() {
+        log::error!(
+            "track: {} items never reached their turn (ticket {next} missing)",
+            pending.len()
+        );
+    }
+}
+
+/// The published message of a rejection (schema `gdvae.rejected/1`).
+pub(super) fn rejected_output(node: &str, r: crate::sources::Rejection) -> Output {
+    Output::Rejected(state::Rejected {
+        schema: state::REJECTED_SCHEMA.into(),
+        node: node.to_string(),
+        stream: r.stream,
+        sequence: r.sequence,
+        stage: r.stage.into(),
+        reason: r.reason,
+        stamps: state::Stamps {
+            sensor_ns: r.sensor_stamp_ns,
+            ingest_ns: r.ingest_unix_ns,
+            publish_ns: 0, // stamped by the publisher
+        },
+    })
+}

@@ -1,0 +1,128 @@
+//! The prepare stage's settings (`[prepare]`): the sensor's pose, ground, crop, outliers,
+//! clustering, sampling; their defaults and their validation.
+
+use serde::{Deserialize, Serialize};
+
+use super::Sampling;
+
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PrepareSettings {
+    /// Row-major 3x3 rotation from the sensor frame into a gravity-aligned frame (z up).
+    pub sensor_to_gravity_rotation: [[f32; 3]; 3],
+    /// Translation (metres) applied after the rotation.
+    pub sensor_to_gravity_translation: [f32; 3],
+    /// Estimate the ground plane by RANSAC on every frame and level the cloud with it (replaces the
+    /// configured rotation's tilt, keeps its heading).
+    pub auto_ground: bool,
+    /// Remove points within `ground_tolerance_m` of the ground plane (estimated by RANSAC).
+    pub remove_ground: bool,
+    pub ground_tolerance_m: f32,
+    pub ransac_iterations: usize,
+    /// Region of interest in the gravity frame (metres): [min_x, min_y, min_z, max_x, max_y, max_z].
+    pub crop: Option<[f32; 6]>,
+    pub outliers: OutlierSettings,
+    /// Keep only the largest cluster of points joined by neighbours closer than this (metres):
+    /// drops what the crop leaves of the floor's noise and stray clutter. 0 keeps every point.
+    pub cluster_m: f32,
+    pub sampling: Sampling,
+    /// Voxel edge (metres) for `sampling = "voxel"`.
+    pub voxel_m: f32,
+    /// Frames with fewer points than this after filtering are rejected (fewer than N_p are padded).
+    pub min_points: usize,
+    /// Seed of the random choices (sampling, RANSAC); frames are deterministic for a seed.
+    pub seed: u64,
+}
+
+impl Default for PrepareSettings {
+    fn default() -> Self {
+        Self {
+            sensor_to_gravity_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            sensor_to_gravity_translation: [0.0; 3],
+            auto_ground: false,
+            remove_ground: false,
+            ground_tolerance_m: 0.02,
+            ransac_iterations: 100,
+            crop: None,
+            outliers: OutlierSettings::default(),
+            cluster_m: 0.0,
+            sampling: Sampling::Farthest,
+            voxel_m: 0.01,
+            min_points: 64,
+            seed: 0,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OutlierMethod {
+    None,
+    Statistical,
+    Radius,
+}
+
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OutlierSettings {
+    pub method: OutlierMethod,
+    /// Statistical: neighbours per point, and the number of standard deviations of the mean
+    /// neighbour distance beyond which a point is removed.
+    pub neighbours: usize,
+    pub std_ratio: f32,
+    /// Radius: a point needs `min_neighbours` others within `radius_m`.
+    pub radius_m: f32,
+    pub min_neighbours: usize,
+}
+
+impl Default for OutlierSettings {
+    fn default() -> Self {
+        Self {
+            method: OutlierMethod::None,
+            neighbours: 8,
+            std_ratio: 2.0,
+            radius_m: 0.05,
+            min_neighbours: 3,
+        }
+    }
+}
+
+impl PrepareSettings {
+    /// Checks every value once; the message names the key.
+    pub fn validate(&self) -> Result<(), String> {
+        let p = self;
+        check_rotation("prepare.sensor_to_gravity_rotation", &p.sensor_to_gravity_rotation)?;
+        if let Some(c) = p.crop {
+            if !(c[0] < c[3] && c[1] < c[4] && c[2] < c[5]) {
+                return Err(format!(
+                    "prepare.crop {c:?} must be [min_x, min_y, min_z, max_x, max_y, max_z] with min < max"
+                ));
+            }
+        }
+        if !(p.ground_tolerance_m > 0.0) || !(p.voxel_m > 0.0) || p.min_points == 0 {
+            return Err("prepare.ground_tolerance_m, prepare.voxel_m and prepare.min_points must be positive".into());
+        }
+        if (p.auto_ground || p.remove_ground) && p.ransac_iterations == 0 {
+            return Err("prepare.ransac_iterations must be at least 1 when the ground is estimated".into());
+        }
+        if !(p.cluster_m >= 0.0 && p.cluster_m.is_finite()) {
+            return Err(format!("prepare.cluster_m = {} must be >= 0 (0: off)", p.cluster_m));
+        }
+        let o = &p.outliers;
+        if o.method != OutlierMethod::None && (o.neighbours == 0 || !(o.std_ratio > 0.0) || !(o.radius_m > 0.0)) {
+            return Err("prepare.outliers: neighbours, std_ratio and radius_m must be positive".into());
+        }
+        Ok(())
+    }
+}
+
+/// A sensor-to-gravity rotation must be one (orthonormal, determinant 1); `key` names it.
+pub fn check_rotation(key: &str, rows: &[[f32; 3]; 3]) -> Result<(), String> {
+    let r = nalgebra::Matrix3::from_fn(|i, j| rows[i][j]);
+    let orthogonality = (r.transpose() * r - nalgebra::Matrix3::identity()).abs().max();
+    if orthogonality < 1e-3 && (r.determinant() - 1.0).abs() < 1e-3 {
+        Ok(())
+    } else {
+        Err(format!("{key} must be a rotation matrix (orthonormal, determinant 1)"))
+    }
+}
