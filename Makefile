@@ -40,7 +40,7 @@ bench-tracking: onnxruntime node sim
 # Fuzz every decoder that takes outside bytes for FUZZ_SECONDS each (cargo-fuzz on the nightly
 # toolchain; installed here if missing). Not part of `make test`: findings become regression tests.
 FUZZ_SECONDS ?= 300
-FUZZ_TARGETS ?= mcap cdr files prepare
+FUZZ_TARGETS ?= mcap cdr files prepare rosbag2
 fuzz: venv sim
 	cargo +nightly fuzz --version >/dev/null 2>&1 || cargo +nightly install cargo-fuzz --locked
 	fuzz/seed.sh

@@ -33,9 +33,15 @@ pub struct Metadata {
 /// is missing is an error naming the file and the reason.
 pub fn read_metadata(folder: &Path) -> Result<Metadata, String> {
     let path = folder.join("metadata.yaml");
+    let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    parse_metadata(&text, folder)
+}
+
+/// `metadata.yaml`'s text, for the bag in `folder` (listed files are checked to exist there).
+pub fn parse_metadata(text: &str, folder: &Path) -> Result<Metadata, String> {
+    let path = folder.join("metadata.yaml");
     let fail = |message: String| format!("{}: {message}", path.display());
-    let text = std::fs::read_to_string(&path).map_err(|e| fail(e.to_string()))?;
-    let documents = yaml_rust2::YamlLoader::load_from_str(&text).map_err(|e| fail(format!("not YAML: {e}")))?;
+    let documents = yaml_rust2::YamlLoader::load_from_str(text).map_err(|e| fail(format!("not YAML: {e}")))?;
     let info = documents
         .first()
         .map(|d| &d["rosbag2_bagfile_information"])
