@@ -1,5 +1,5 @@
 # The project's entry points. `make test` is what CI runs (.ci/run).
-.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking fuzz
+.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking fuzz soak
 
 VENV := .venv
 PYTHON := $(VENV)/bin/python
@@ -36,6 +36,13 @@ bench-tracking: onnxruntime node sim
 	bench/tracking.sh tune
 	bench/tracking.sh holdout
 	bench/tracking.sh final
+
+# Overload soak (README "Faults and overload"): a live feed at SOAK_FACTOR times the node's
+# capacity for SOAK_SECONDS against the real binary; prints the RSS series, drops and latency.
+SOAK_FACTOR ?= 10
+SOAK_SECONDS ?= 60
+soak: venv onnxruntime node
+	$(PYTHON) bench/soak.py --factor $(SOAK_FACTOR) --seconds $(SOAK_SECONDS)
 
 # Fuzz every decoder that takes outside bytes for FUZZ_SECONDS each (cargo-fuzz on the nightly
 # toolchain; installed here if missing). Not part of `make test`: findings become regression tests.

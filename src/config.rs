@@ -100,6 +100,9 @@ pub struct PipelineSettings {
     pub prepare_workers: usize,
     /// Seconds between summary lines in the log (0: none).
     pub summary_seconds: f64,
+    /// A live feed silent for longer than this (seconds) that then resumes counts as a gap
+    /// (`feed_gaps` in the counters, a warning in the log). 0: not watched.
+    pub feed_gap_s: f64,
 }
 
 impl Default for PipelineSettings {
@@ -108,6 +111,7 @@ impl Default for PipelineSettings {
             queue: 16,
             prepare_workers: 2,
             summary_seconds: 5.0,
+            feed_gap_s: 1.0,
         }
     }
 }
@@ -217,6 +221,9 @@ impl Config {
         }
         if !(self.pipeline.summary_seconds >= 0.0) {
             return Err("pipeline.summary_seconds must be >= 0".into());
+        }
+        if !(self.pipeline.feed_gap_s >= 0.0 && self.pipeline.feed_gap_s.is_finite()) {
+            return Err("pipeline.feed_gap_s must be finite and >= 0 (0: off)".into());
         }
         self.prepare.validate()?;
         self.track.validate()?;

@@ -773,6 +773,10 @@ fn print_report(
                 format!(" {} publish errors", c.publish_errors)
             } else {
                 String::new()
+            } + &if c.feed_gaps > 0 {
+                format!(" {} feed gap(s), {:.1} s silent", c.feed_gaps, c.feed_gap_s)
+            } else {
+                String::new()
             }
         );
     }

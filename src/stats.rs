@@ -82,6 +82,8 @@ pub struct StreamCounters {
     published: AtomicU64,
     published_unconnected: AtomicU64,
     publish_errors: AtomicU64,
+    feed_gaps: AtomicU64,
+    feed_gap_ms: AtomicU64,
     rejected: Mutex<BTreeMap<String, u64>>,
 }
 
@@ -106,6 +108,14 @@ impl StreamCounters {
     pub fn add_published_unconnected(&self) {
         self.published_unconnected.fetch_add(1, Ordering::Relaxed);
     }
+    /// A live feed that was silent for longer than `[pipeline] feed_gap_s` and came back.
+    pub fn add_feed_gap(&self, silent: std::time::Duration) {
+        self.feed_gaps.fetch_add(1, Ordering::Relaxed);
+        self.feed_gap_ms.fetch_add(silent.as_millis() as u64, Ordering::Relaxed);
+    }
+    pub fn feed_gaps(&self) -> u64 {
+        self.feed_gaps.load(Ordering::Relaxed)
+    }
     pub fn add_publish_error(&self) {
         self.publish_errors.fetch_add(1, Ordering::Relaxed);
     }
@@ -122,7 +132,7 @@ impl StreamCounters {
     }
 }
 
-#[derive(Debug, Clone, Serialize, PartialEq, Eq)]
+#[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct StreamSnapshot {
     pub received: u64,
     pub dropped: u64,
@@ -134,6 +144,10 @@ pub struct StreamSnapshot {
     /// Outputs the sinks failed to send (logged).
     pub publish_errors: u64,
     pub non_finite_points: u64,
+    /// Times a live feed fell silent for longer than `[pipeline] feed_gap_s` and resumed, and the
+    /// seconds it was silent in all.
+    pub feed_gaps: u64,
+    pub feed_gap_s: f64,
 }
 
 #[derive(Debug, Default)]
@@ -189,6 +203,8 @@ impl Stats {
                         published_unconnected: c.published_unconnected.load(Ordering::Relaxed),
                         publish_errors: c.publish_errors.load(Ordering::Relaxed),
                         non_finite_points: c.non_finite_points.load(Ordering::Relaxed),
+                        feed_gaps: c.feed_gaps.load(Ordering::Relaxed),
+                        feed_gap_s: c.feed_gap_ms.load(Ordering::Relaxed) as f64 / 1000.0,
                     },
                 )
             })

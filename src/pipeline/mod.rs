@@ -159,6 +159,7 @@ pub fn run(
     for source in ordered {
         let live = source.is_live();
         let (outlet, receiver) = Outlet::new(&source.stream, live, queue, stats.clone(), stop.clone());
+        let outlet = outlet.with_feed_gap(Duration::from_secs_f64(config.pipeline.feed_gap_s));
         source_channels.push((live, receiver));
         stats.stream(&source.stream);
         match sources::start(source, outlet, &context) {

@@ -177,6 +177,9 @@ pub struct Outlet {
     sequence: u64,
     stats: Arc<Stats>,
     stop: Arc<AtomicBool>,
+    /// Live outlets: silence longer than this, then an input, counts as a gap in the feed.
+    feed_gap: Option<std::time::Duration>,
+    last_input: Option<Instant>,
 }
 
 impl Outlet {
@@ -197,8 +200,16 @@ impl Outlet {
             sequence: 0,
             stats,
             stop,
+            feed_gap: None,
+            last_input: None,
         };
         (outlet, receiver)
+    }
+
+    /// Counts (and logs) every time this live feed resumes after more than `gap` without input.
+    pub fn with_feed_gap(mut self, gap: std::time::Duration) -> Self {
+        self.feed_gap = (self.live && !gap.is_zero()).then_some(gap);
+        self
     }
 
     pub fn stream(&self) -> &str {
@@ -270,7 +281,22 @@ impl Outlet {
     fn next_sequence(&mut self) -> u64 {
         let s = self.sequence;
         self.sequence += 1;
-        self.stats.stream(&self.stream).add_received();
+        let counters = self.stats.stream(&self.stream);
+        counters.add_received();
+        let now = Instant::now();
+        if let (Some(gap), Some(last)) = (self.feed_gap, self.last_input) {
+            let silent = now - last;
+            if silent > gap {
+                counters.add_feed_gap(silent);
+                log::warn!(
+                    "{}: the feed resumed after {:.1} s without input ({} gap(s) so far)",
+                    self.stream,
+                    silent.as_secs_f64(),
+                    counters.feed_gaps()
+                );
+            }
+        }
+        self.last_input = Some(now);
         s
     }
 

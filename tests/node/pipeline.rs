@@ -309,3 +309,56 @@ fn zenoh_sources_decode_cdr_and_depthai_and_count_what_they_reject() {
         "{reasons:?}"
     );
 }
+
+#[test]
+fn a_live_feed_that_goes_silent_and_returns_resumes_and_the_gap_is_counted() {
+    let endpoint = free_endpoint();
+    let mut config = test_config("gap", &endpoint);
+    config.prepare = Config::load(&repo().join("config/replay.toml")).unwrap().prepare;
+    config.pipeline.feed_gap_s = 1.0;
+    config.sources = vec![source("stream = \"cam\"\nkind = \"zenoh\"\nkey = \"test/gap/points\"")];
+    let bytes = std::fs::read(sample_recording()).unwrap();
+    let clouds: Vec<Vec<u8>> = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .map(Result::unwrap)
+        .filter(|m| m.channel.topic == "/camera/depth/points")
+        .take(8)
+        .map(|m| m.data.to_vec())
+        .collect();
+    let node = gdvae_node::publish::open_session(&config).unwrap();
+    let client = client_session(&endpoint);
+    let (stop, stats, handle) = start(config, node);
+    let publisher = client
+        .declare_publisher("test/gap/points")
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .wait()
+        .unwrap();
+    assert!(wait_until(Duration::from_secs(20), || publisher
+        .matching_status()
+        .wait()
+        .unwrap()
+        .matching()));
+    let published = || stats.snapshot().streams.get("cam").map(|c| c.published).unwrap_or(0);
+    // Four frames at 10 Hz, 2.5 s of silence (the sensor unplugged), four more.
+    for cloud in &clouds[..4] {
+        publisher.put(cloud.clone()).wait().unwrap();
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert!(wait_until(Duration::from_secs(30), || published() == 4));
+    std::thread::sleep(Duration::from_millis(2500));
+    for cloud in &clouds[4..] {
+        publisher.put(cloud.clone()).wait().unwrap();
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert!(
+        wait_until(Duration::from_secs(30), || published() == 8),
+        "states resume after the gap: {:?}",
+        stats.snapshot().streams
+    );
+    stop.store(true, Ordering::SeqCst);
+    let summary = join_within(handle, Duration::from_secs(30));
+    let counters = &summary.snapshot.streams["cam"];
+    assert_eq!(counters.feed_gaps, 1, "{counters:?}");
+    assert!(counters.feed_gap_s >= 2.4 && counters.feed_gap_s < 10.0, "{counters:?}");
+    assert_eq!((counters.received, counters.dropped), (8, 0));
+}
