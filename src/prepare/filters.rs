@@ -1,6 +1,7 @@
 //! Geometric clean-up of a frame before subsampling: the sensor-to-gravity transform, a
 //! region-of-interest crop, the ground plane (RANSAC: to level the cloud and/or remove the ground)
-//! and outlier removal (statistical or radius, on a kiddo KD-tree).
+//! outlier removal (statistical or radius, on a kiddo KD-tree) and the largest Euclidean cluster
+//! (on a grid of cells, union-find).
 
 use std::num::NonZeroUsize;
 
@@ -162,49 +163,150 @@ pub fn remove_outliers(points: &mut Vec<[f32; 3]>, settings: &OutlierSettings) -
     before - points.len()
 }
 
+/// Grid cells by their integer coordinates, hashed cheaply (a multiply-xor; the keys are not
+/// chosen by an adversary that could exploit collisions beyond slowing one frame).
+type CellMap = std::collections::HashMap<[i64; 3], usize, std::hash::BuildHasherDefault<CellHasher>>;
+
+#[derive(Default)]
+struct CellHasher(u64);
+
+impl std::hash::Hasher for CellHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.write_u64(*b as u64);
+        }
+    }
+    fn write_i64(&mut self, value: i64) {
+        self.write_u64(value as u64);
+    }
+    fn write_u64(&mut self, value: u64) {
+        self.0 = (self.0.rotate_left(5) ^ value).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+}
+
 /// Keeps the largest Euclidean cluster: points joined by chains of neighbours closer than
 /// `radius` (PCL's EuclideanClusterExtraction, one cluster). What a crop leaves of the floor's
 /// depth noise and of stray clutter is sparse and falls apart from the object. Returns how many
 /// points were removed.
 pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
-    if points.len() < 2 {
+    if points.len() < 2 || !(radius > 0.0) {
         return 0;
     }
-    let Ok(tree) = ImmutableKdTree::<f32, 3>::new_from_slice(points) else {
-        return 0;
-    };
+    // A grid of cells whose diagonal is `radius`: the points of one cell are all within `radius`
+    // of each other, so each cell lies in one cluster, and clusters are found by joining cells
+    // (union-find) that hold a pair of points within `radius` of each other. The same clusters as
+    // a neighbour search from every point, at a fraction of its cost on dense surfaces.
+    let cell = radius / 3f32.sqrt();
     let radius_squared = radius * radius;
-    let mut label = vec![usize::MAX; points.len()];
-    let (mut best, mut best_size) = (0usize, 0usize);
-    let mut stack = Vec::new();
-    for seed in 0..points.len() {
-        if label[seed] != usize::MAX {
-            continue;
+    let key = |p: &[f32; 3]| p.map(|c| (c / cell).floor() as i64);
+    let mut id: CellMap = CellMap::default();
+    let mut members: Vec<Vec<usize>> = Vec::new();
+    let mut keys: Vec<[i64; 3]> = Vec::new();
+    for (index, p) in points.iter().enumerate() {
+        let k = key(p);
+        let cell_id = *id.entry(k).or_insert_with(|| {
+            keys.push(k);
+            members.push(Vec::new());
+            keys.len() - 1
+        });
+        members[cell_id].push(index);
+    }
+    // Neighbour lookups in a dense grid over the occupied box when it is small enough (a cropped
+    // frame), else in the hash map.
+    let low = keys
+        .iter()
+        .fold([i64::MAX; 3], |m, k| [0, 1, 2].map(|a| m[a].min(k[a])));
+    let high = keys
+        .iter()
+        .fold([i64::MIN; 3], |m, k| [0, 1, 2].map(|a| m[a].max(k[a])));
+    let dims = [0, 1, 2].map(|a| (high[a] - low[a] + 1) as u64);
+    let dense: Option<Vec<u32>> = (dims.iter().product::<u64>() <= 1 << 22).then(|| {
+        let mut grid = vec![u32::MAX; dims.iter().product::<u64>() as usize];
+        for (i, k) in keys.iter().enumerate() {
+            grid[(((k[0] - low[0]) as u64 * dims[1] + (k[1] - low[1]) as u64) * dims[2] + (k[2] - low[2]) as u64)
+                as usize] = i as u32;
         }
-        label[seed] = seed;
-        stack.push(seed);
-        let mut size = 0;
-        while let Some(i) = stack.pop() {
-            size += 1;
-            let found = tree
-                .query(&points[i])
-                .within::<SquaredEuclidean<f32>>(radius_squared)
-                .unsorted()
-                .execute();
-            for neighbour in found {
-                let j = neighbour.item as usize;
-                if label[j] == usize::MAX {
-                    label[j] = seed;
-                    stack.push(j);
+        grid
+    });
+    let lookup = |k: [i64; 3]| -> Option<usize> {
+        match &dense {
+            Some(grid) => {
+                if (0..3).any(|a| k[a] < low[a] || k[a] > high[a]) {
+                    return None;
+                }
+                let at = (((k[0] - low[0]) as u64 * dims[1] + (k[1] - low[1]) as u64) * dims[2]
+                    + (k[2] - low[2]) as u64) as usize;
+                (grid[at] != u32::MAX).then_some(grid[at] as usize)
+            }
+            None => id.get(&k).copied(),
+        }
+    };
+    let mut parent: Vec<usize> = (0..keys.len()).collect();
+    fn root(parent: &mut [usize], mut i: usize) -> usize {
+        while parent[i] != i {
+            parent[i] = parent[parent[i]];
+            i = parent[i];
+        }
+        i
+    }
+    // Cells up to two apart along an axis can hold points within `radius` (gap (|d| - 1) * cell);
+    // the nearest first, which join most cells before the farther ones need a pair search.
+    let mut offsets = Vec::new();
+    for dx in -2i64..=2 {
+        for dy in -2i64..=2 {
+            for dz in -2i64..=2 {
+                let gap: i64 = [dx, dy, dz].iter().map(|d| (d.abs() - 1).max(0).pow(2)).sum();
+                if (dx, dy, dz) > (0, 0, 0) && gap <= 3 {
+                    offsets.push((gap, [dx, dy, dz]));
                 }
             }
         }
-        if size > best_size {
-            (best, best_size) = (seed, size);
+    }
+    offsets.sort();
+    for (_, d) in &offsets {
+        for a in 0..keys.len() {
+            let k = keys[a];
+            let Some(b) = lookup([k[0] + d[0], k[1] + d[1], k[2] + d[2]]) else {
+                continue;
+            };
+            let (ra, rb) = (root(&mut parent, a), root(&mut parent, b));
+            if ra == rb {
+                continue;
+            }
+            let joined = members[a].iter().any(|&i| {
+                let p = points[i];
+                members[b].iter().any(|&j| {
+                    let q = points[j];
+                    (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2) <= radius_squared
+                })
+            });
+            if joined {
+                parent[ra.max(rb)] = ra.min(rb);
+            }
+        }
+    }
+    // The largest cluster; of equal ones, the one holding the lowest point index.
+    let mut size = vec![0usize; keys.len()];
+    let mut first = vec![usize::MAX; keys.len()];
+    for (a, cell_members) in members.iter().enumerate() {
+        let r = root(&mut parent, a);
+        size[r] += cell_members.len();
+        first[r] = first[r].min(cell_members[0]);
+    }
+    let best = (0..keys.len())
+        .max_by(|&a, &b| size[a].cmp(&size[b]).then(first[b].cmp(&first[a])))
+        .expect("at least one cell");
+    let mut keep = vec![false; points.len()];
+    for (a, cell_members) in members.iter().enumerate() {
+        if root(&mut parent, a) == best {
+            cell_members.iter().for_each(|&i| keep[i] = true);
         }
     }
     let before = points.len();
-    let mut labels = label.into_iter();
-    points.retain(|_| labels.next() == Some(best));
+    let mut flags = keep.into_iter();
+    points.retain(|_| flags.next().unwrap_or(false));
     before - points.len()
 }

@@ -218,3 +218,59 @@ fn a_source_can_carry_its_own_sensor_pose() {
         "only the pose differs: the centred clouds agree to {largest}"
     );
 }
+
+/// The largest cluster by brute force: a breadth-first search over every pair within `radius`.
+fn largest_cluster_by_brute_force(points: &[[f32; 3]], radius: f32) -> Vec<[f32; 3]> {
+    let n = points.len();
+    let near = |i: usize, j: usize| {
+        let (p, q) = (points[i], points[j]);
+        (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2) <= radius * radius
+    };
+    let mut label = vec![usize::MAX; n];
+    let (mut best, mut best_size) = (0, 0);
+    for seed in 0..n {
+        if label[seed] != usize::MAX {
+            continue;
+        }
+        label[seed] = seed;
+        let (mut stack, mut size) = (vec![seed], 0);
+        while let Some(i) = stack.pop() {
+            size += 1;
+            for j in 0..n {
+                if label[j] == usize::MAX && near(i, j) {
+                    label[j] = seed;
+                    stack.push(j);
+                }
+            }
+        }
+        if size > best_size {
+            (best, best_size) = (seed, size);
+        }
+    }
+    (0..n).filter(|&i| label[i] == best).map(|i| points[i]).collect()
+}
+
+#[test]
+fn the_largest_cluster_is_the_one_a_neighbour_search_finds() {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+    for case in 0..40 {
+        // Blobs of different sizes and spreads, some touching, plus sparse noise.
+        let mut points = Vec::new();
+        for _ in 0..rng.random_range(1..5) {
+            let centre: [f32; 3] = std::array::from_fn(|_| rng.random_range(-1.0..1.0));
+            let spread = rng.random_range(0.02..0.3);
+            for _ in 0..rng.random_range(5..300) {
+                points.push(centre.map(|c| c + rng.random_range(-spread..spread)));
+            }
+        }
+        for _ in 0..rng.random_range(0..50) {
+            points.push(std::array::from_fn(|_| rng.random_range(-1.5..1.5)));
+        }
+        let radius = rng.random_range(0.02..0.15);
+        let expected = largest_cluster_by_brute_force(&points, radius);
+        let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, radius);
+        assert_eq!(points, expected, "case {case}, radius {radius}");
+        assert!(removed + points.len() > 0);
+    }
+}
