@@ -209,8 +209,27 @@ fn states_encode_as_cbor_too() {
 }
 
 #[test]
-fn sigint_drains_and_the_binary_exits_zero() {
+fn sigint_and_sigterm_drain_and_the_binary_exits_zero() {
+    for signal in ["-INT", "-TERM"] {
+        interrupted_run_drains(signal);
+    }
+}
+
+/// A paced, repeating files run (meshes and one unreadable file) stopped by `signal` mid-run:
+/// exit 0, and every frame taken in is either published or a counted rejection.
+fn interrupted_run_drains(signal: &str) {
     let dir = tempfile::tempdir().unwrap();
+    let inputs = dir.path().join("inputs");
+    std::fs::create_dir(&inputs).unwrap();
+    for entry in std::fs::read_dir(repo().join("sim/samples/meshes")).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::copy(&path, inputs.join(path.file_name().unwrap())).unwrap();
+    }
+    std::fs::write(
+        inputs.join("broken.ply"),
+        "ply\nformat ascii 1.0\nelement vertex 9\nend_header\n",
+    )
+    .unwrap();
     let jsonl = dir.path().join("states.jsonl");
     let config = dir.path().join("node.toml");
     let mut file = std::fs::File::create(&config).unwrap();
@@ -220,7 +239,7 @@ fn sigint_drains_and_the_binary_exits_zero() {
          [[source]]\nstream = \"m\"\nkind = \"files\"\npath = {:?}\nrepeat = true\nrate_hz = 50.0\n",
         shipped_bundle().display().to_string(),
         jsonl.display().to_string(),
-        repo().join("sim/samples/meshes").display().to_string()
+        inputs.display().to_string()
     )
     .unwrap();
     let child = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
@@ -236,7 +255,7 @@ fn sigint_drains_and_the_binary_exits_zero() {
         "the node publishes"
     );
     let status = std::process::Command::new("kill")
-        .args(["-INT", &child.id().to_string()])
+        .args([signal, &child.id().to_string()])
         .status()
         .unwrap();
     assert!(status.success());
@@ -250,15 +269,18 @@ fn sigint_drains_and_the_binary_exits_zero() {
         output.status,
         String::from_utf8_lossy(&output.stderr)
     );
-    // The summary's counts agree with what was written: every frame taken in was published.
+    // The summary's counts agree with what was written: every frame taken in was published or
+    // rejected.
     let row = stdout
         .lines()
         .find(|l| l.trim_start().starts_with("m "))
         .expect("a summary row");
     let numbers: Vec<u64> = row.split_whitespace().filter_map(|w| w.parse().ok()).collect();
-    let (received, published) = (numbers[0], numbers[1]);
-    assert_eq!(received, published, "{row}");
-    assert_eq!(lines() as u64, published);
+    let (received, published, dropped, rejected) = (numbers[0], numbers[1], numbers[2], numbers[3]);
+    assert_eq!(dropped, 0, "{row}");
+    assert!(rejected >= 1, "the broken file came round at least once: {row}");
+    assert_eq!(received, published + rejected, "{signal}: {row}");
+    assert_eq!(lines() as u64, received, "one line per state or rejection");
 }
 
 /// Runs the binary with `args` and a config of `sources` (TOML), JSON lines off; its exit and output.
