@@ -62,6 +62,11 @@ class VAEConfig:
     # Not in the paper: ramp the four HFVAE betas linearly from 0 over this many iterations, so
     # the decoder can learn to use z_E before its information costs anything (0: off).
     beta_warmup_iterations: int = 0
+    # L_Sigma's form. "covariance": the paper's L1 norm of the raw cross-covariances between the
+    # group means, whose sampling-noise floor grows with the means' scale (so it can push mu_E to a
+    # constant); "correlation": the sum of squared cross-correlations, scale-free, with a floor of
+    # about 1/batch per pair of dimensions; "off". (Issue 11, cause 3.)
+    covariance_form: str = "covariance"
 
     @property
     def n_intrinsic(self) -> int:
@@ -72,6 +77,8 @@ class VAEConfig:
             raise ValueError(f"regime must be 'gdvae++' or 'fo', got {self.regime!r}")
         if min(self.latent, self.spectrum, self.n_rotation, self.n_extrinsic) < 1:
             raise ValueError("latent sizes must be positive")
+        if self.covariance_form not in ("covariance", "correlation", "off"):
+            raise ValueError(f"covariance_form must be 'covariance', 'correlation' or 'off', got {self.covariance_form!r}")
 
     @classmethod
     def flow_only(cls, **overrides) -> "VAEConfig":
@@ -153,6 +160,30 @@ def covariance_penalty(groups: list[torch.Tensor]) -> torch.Tensor:
     return total
 
 
+def correlation_penalty(groups: list[torch.Tensor]) -> torch.Tensor:
+    """L_Sigma as squared correlations: the sum over pairs of different groups of every squared
+    Pearson correlation between a dimension of one and a dimension of the other. Scale-free: it
+    cannot be lowered by shrinking a group's means, only by making the groups independent."""
+    standardised = []
+    for g in groups:
+        x = g - g.mean(0)
+        standardised.append(x / (x.pow(2).sum(0).sqrt() + 1e-8))
+    total = groups[0].new_zeros(())
+    for a in range(len(groups)):
+        for b in range(a + 1, len(groups)):
+            total = total + (standardised[a].T @ standardised[b]).pow(2).sum()
+    return 2 * total
+
+
+def disentanglement_penalty(form: str, groups: list[torch.Tensor]) -> torch.Tensor:
+    """L_Sigma in the configured form (see VAEConfig.covariance_form)."""
+    if form == "correlation":
+        return correlation_penalty(groups)
+    if form == "off":
+        return groups[0].new_zeros(())
+    return covariance_penalty(groups)
+
+
 def jacobian_penalty(model: LatentVAE, mu_e: torch.Tensor, mu_i: torch.Tensor) -> torch.Tensor:
     """L_J: ||d mu^_E / d mu_I||_F^2 + ||d mu^_I / d mu_E||_F^2 through a decode/re-encode cycle,
     estimated without building Jacobians: E_v ||J v||^2 = ||J||_F^2 for v ~ N(0, I)."""
@@ -217,7 +248,9 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
     variance = 0.5 * (error * torch.exp(-lv_i) + lv_i).sum(-1).mean()
     consistency = consistency + c.omega_variance * variance
 
-    covariance = covariance_penalty([mu_r, mu_e, mean_i])
+    covariance = disentanglement_penalty(c.covariance_form, [mu_r, mu_e, mean_i])
+    # omega_J = 0 turns L_J off, and its cost (most of a step) with it.
+    with_jacobian = with_jacobian and c.omega_jacobian != 0
     jacobian = jacobian_penalty(model, mu_e, mean_i) if with_jacobian else mu_e.new_zeros(())
     disentangle = c.omega_covariance * covariance + c.omega_jacobian * jacobian
 

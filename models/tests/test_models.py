@@ -12,7 +12,7 @@ from gdvae.flow import SpectralFlow
 from gdvae.geometry import (chamfer, geodesic_distance, matrix_to_quaternion, quaternion_distance,
                             quaternion_to_matrix, random_rotation_matrices, rotate)
 from gdvae.hfvae import gaussian_log_density, hfvae_terms
-from gdvae.vae import LatentVAE, VAEConfig, vae_loss
+from gdvae.vae import LatentVAE, VAEConfig, correlation_penalty, covariance_penalty, vae_loss
 
 SMALL_AE = dict(points=64, latent=24, rotation_hidden=(16, 32), shape_hidden=(16, 32), decoder_width=32, copies=2)
 
@@ -227,3 +227,36 @@ def test_partial_views_show_the_camera_side_and_train_against_the_whole_cloud():
     model.config.supervised = False
     with pytest.raises(ValueError, match="supervised"):
         ae_loss(model, clouds, views=views)
+
+
+def test_squared_correlation_penalty_is_near_zero_for_independent_groups_and_scale_free():
+    torch.manual_seed(0)
+    batch = 4096
+    a, b = torch.randn(batch, 3), torch.randn(batch, 10)
+    independent = correlation_penalty([a, b])
+    # 2 * 3 * 10 squared correlations, each about 1/batch for independent groups.
+    assert independent.item() < 2 * 30 * 5 / batch
+    dependent = correlation_penalty([a, torch.cat([a[:, :1] + 0.1 * torch.randn(batch, 1), b[:, 1:]], -1)])
+    assert dependent.item() > 1.5
+    # Shrinking a group does not lower it (the raw covariance form does).
+    assert correlation_penalty([a, 0.01 * b]).item() == pytest.approx(independent.item(), rel=1e-3)
+    assert covariance_penalty([a, 0.01 * b]).item() < 0.02 * covariance_penalty([a, b]).item()
+
+
+@pytest.mark.parametrize("form", ["covariance", "correlation", "off"])
+def test_every_covariance_form_trains_and_a_zero_jacobian_weight_skips_l_j(form):
+    torch.manual_seed(0)
+    config = small_vae()
+    config.covariance_form = form
+    config.omega_jacobian = 0.0
+    model = LatentVAE(config)
+    q = torch.nn.functional.normalize(torch.randn(16, 4), dim=-1)
+    x_c, spectra = torch.randn(16, 24), torch.rand(16, 6).cumsum(-1) + 1
+    model.flow.input.fit(spectra)
+    losses = vae_loss(model, q, x_c, spectra, dataset_size=100)
+    losses.total.backward()
+    assert no_gradient(model) == []
+    assert losses.parts["jacobian"] == 0.0
+    assert (losses.parts["covariance"] == 0.0) == (form == "off")
+    with pytest.raises(ValueError, match="covariance_form"):
+        VAEConfig(covariance_form="l2").validate()
