@@ -48,14 +48,35 @@ class AEConfig:
     gamma_weights: float = 2e-5  # gamma_w
     gamma_radius: float = 2e-5  # gamma_d
     copies: int = 3  # N_R
+    # What E_r regresses. "quaternion": the paper's 4 numbers, normalised. "yaw" (rotations about
+    # the up axis only): a direction (cos psi, sin psi) on the circle, turned into the quaternion
+    # (cos psi/2, 0, 0, sin psi/2). A regressed quaternion needs a seam for yaw-only rotations (a
+    # full turn maps q to -q); the circle has none, and the bundle still outputs q. (Issue 11.)
+    rotation_head: str = "quaternion"
 
     def validate(self) -> None:
         if self.kind not in ("ftl", "std"):
             raise ValueError(f"AE kind must be 'ftl' or 'std', got {self.kind!r}")
+        if self.rotation_head not in ("quaternion", "yaw"):
+            raise ValueError(f"rotation_head must be 'quaternion' or 'yaw', got {self.rotation_head!r}")
+        if self.rotation_head == "yaw" and self.full_rotations:
+            raise ValueError("rotation_head = 'yaw' needs rotations about the up axis (full_rotations off)")
         if self.kind == "ftl" and self.latent % 3:
             raise ValueError(f"FTL latent size must be a multiple of 3, got {self.latent}")
         if self.points < 16 or self.latent < 3 or self.copies < 1:
             raise ValueError(f"points ({self.points}), latent ({self.latent}) and copies ({self.copies}) are too small")
+
+
+def yaw_quaternion(direction: torch.Tensor) -> torch.Tensor:
+    """[B, 2] (cos psi, sin psi), up to scale -> [B, 4] the rotation by psi about z, (w, x, y, z)
+    with w >= 0: normalise (1 + cos psi, 0, 0, sin psi), which is cos(psi/2) (cos psi/2, 0, 0,
+    sin psi/2). Its rotation matrix is [[c, -s, 0], [s, c, 0], [0, 0, 1]] for every direction (the
+    q / -q flip at psi = pi is the double cover, not a seam in the rotation); only elementary ops,
+    so it exports to ONNX as it is."""
+    c, s = (direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-8)).unbind(-1)
+    zero = torch.zeros_like(c)
+    q = torch.stack([1 + c, zero, zero, s], -1)
+    return q / q.norm(dim=-1, keepdim=True).clamp_min(1e-8)
 
 
 @dataclass
@@ -73,14 +94,16 @@ class Autoencoder(nn.Module):
         super().__init__()
         config.validate()
         self.config = config
-        self.rotation_encoder = PointNet(config.rotation_hidden, 4)
+        self.rotation_encoder = PointNet(config.rotation_hidden, 2 if config.rotation_head == "yaw" else 4)
         self.shape_encoder = PointNet(config.shape_hidden, config.latent)
         k = config.decoder_width
         self.decoder = mlp(config.latent, (k, 2 * k, 4 * k), 3 * config.points)
 
     def encode_rotation(self, points: torch.Tensor) -> torch.Tensor:
-        q = self.rotation_encoder(points)
-        return q / q.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        out = self.rotation_encoder(points)
+        if self.config.rotation_head == "yaw":
+            return yaw_quaternion(out)
+        return out / out.norm(dim=-1, keepdim=True).clamp_min(1e-8)
 
     def encode_shape(self, points: torch.Tensor, rotation: torch.Tensor, generator=None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(x_c, x~): the canonical code, and for FTL the pose-aware code it was derotated from."""

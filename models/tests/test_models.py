@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from gdvae.ae import AEConfig, Autoencoder, ae_loss
+from gdvae.ae import AEConfig, Autoencoder, ae_loss, yaw_quaternion
 from gdvae.flow import SpectralFlow
 from gdvae.geometry import (chamfer, geodesic_distance, matrix_to_quaternion, quaternion_distance,
                             quaternion_to_matrix, random_rotation_matrices, rotate)
@@ -260,3 +260,56 @@ def test_every_covariance_form_trains_and_a_zero_jacobian_weight_skips_l_j(form)
     assert (losses.parts["covariance"] == 0.0) == (form == "off")
     with pytest.raises(ValueError, match="covariance_form"):
         VAEConfig(covariance_form="l2").validate()
+
+
+def test_the_yaw_head_round_trips_angles_across_plus_minus_pi_without_a_seam():
+    psi = torch.cat([torch.linspace(-math.pi, math.pi, 2001, dtype=torch.float64),
+                     torch.tensor([math.pi - 1e-4, -math.pi + 1e-4], dtype=torch.float64)])
+    direction = torch.stack([psi.cos(), psi.sin()], -1) * 3.0  # any scale
+    q = yaw_quaternion(direction)
+    c, s = psi.cos(), psi.sin()
+    one, zero = torch.ones_like(c), torch.zeros_like(c)
+    expected = torch.stack([torch.stack([c, -s, zero], -1), torch.stack([s, c, zero], -1),
+                            torch.stack([zero, zero, one], -1)], -2)
+    assert torch.allclose(quaternion_to_matrix(q), expected, atol=1e-6)
+    # Consecutive angles give nearby rotations all the way round, through +-pi.
+    steps = geodesic_distance(quaternion_to_matrix(q[1:2001]), quaternion_to_matrix(q[:2000])) * 180
+    assert steps.max().item() < 0.2
+    # The yaw read back from q (as the node does: 2 atan2(z, w)) is psi.
+    read = 2 * torch.atan2(q[:, 3], q[:, 0])
+    assert torch.allclose(torch.remainder(read - psi + math.pi, 2 * math.pi) - math.pi, zero, atol=1e-6)
+    # Finite gradients next to the seam.
+    near = torch.tensor([[math.cos(math.pi - 1e-3), math.sin(math.pi - 1e-3)]], requires_grad=True)
+    geodesic_distance(quaternion_to_matrix(yaw_quaternion(near)), torch.eye(3)[None]).sum().backward()
+    assert torch.isfinite(near.grad).all()
+
+
+def test_an_autoencoder_with_the_yaw_head_trains_and_exports_its_quaternion(tmp_path):
+    import onnxruntime
+    torch.manual_seed(0)
+    config = AEConfig(points=32, latent=12, rotation_hidden=(8, 16), shape_hidden=(8, 16), decoder_width=8,
+                      copies=2, rotation_head="yaw")
+    model = Autoencoder(config)
+    losses, _ = ae_loss(model, torch.randn(3, 32, 3))
+    losses.total.backward()
+    assert all(p.grad is not None for p in model.rotation_encoder.parameters())
+    model.eval()
+    points = torch.randn(2, 32, 3)
+    torch.onnx.export(_RotationGraph(model).eval(), (points,), tmp_path / "rotation.onnx", dynamo=False,
+                      input_names=["points"], output_names=["q"])
+    session = onnxruntime.InferenceSession(str(tmp_path / "rotation.onnx"), providers=["CPUExecutionProvider"])
+    (exported,) = session.run(None, {"points": points.numpy()})
+    q = model.encode_rotation(points).detach().numpy()
+    assert np.abs(exported - q).max() < 1e-5
+    assert np.allclose(q[:, 1:3], 0) and (q[:, 0] >= 0).all()
+    with pytest.raises(ValueError, match="up axis"):
+        AEConfig(rotation_head="yaw", full_rotations=True).validate()
+
+
+class _RotationGraph(torch.nn.Module):
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, points):
+        return self.model.encode_rotation(points)
