@@ -23,7 +23,7 @@ import torch
 
 from .ae import AEConfig, Autoencoder, ae_loss
 from .data import MeshDataset, normalize, random_view_directions, sample_surface
-from .geometry import quaternion_to_matrix, random_rotation_matrices, rotate
+from .geometry import matrix_to_quaternion, quaternion_to_matrix, random_rotation_matrices, rotate
 from .vae import LatentVAE, VAEConfig, vae_loss
 
 log = logging.getLogger(__name__)
@@ -40,6 +40,10 @@ class Recipe:
     ae_learning_rate: float = 5e-4
     ae_min_learning_rate: float = 1e-4
     bank_copies: int = 8  # random rotations per training mesh in the code bank
+    # Supervised AEs: encode the code bank with the true rotation (q and x_c), as the paper does in
+    # every training operation of the supervised model; False: with E_r's prediction (what this kit
+    # did before; a copy whose heading E_r got wrong becomes variance the VAE cannot explain).
+    bank_true_rotation: bool = True
     vae_iterations: int = 40000
     vae_batch: int = 264
     vae_learning_rate: float = 1e-4
@@ -319,15 +323,20 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir) -> None:
 
 @torch.no_grad()
 def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe) -> dict:
-    """(q, x_c, lambda) for every training mesh under `bank_copies` random rotations."""
+    """(q, x_c, lambda) for every training mesh under `bank_copies` random rotations; the
+    rotation is the true one for a supervised AE with `bank_true_rotation`, else E_r's."""
     ae.eval()
     qs, codes, spectrum = [], [], []
     for index in range(len(sampler.meshes)):
         clouds = sampler.clouds(index, chosen.bank_copies)
         rotations = random_rotation_matrices(len(clouds), full=chosen.ae.full_rotations)
         inputs = rotate(clouds, rotations)
-        q = ae.encode_rotation(inputs)
-        x_c, _ = ae.encode_shape(inputs, quaternion_to_matrix(q))
+        if chosen.bank_true_rotation and ae.config.supervised:
+            q, used = matrix_to_quaternion(rotations), rotations
+        else:
+            q = ae.encode_rotation(inputs)
+            used = quaternion_to_matrix(q)
+        x_c, _ = ae.encode_shape(inputs, used)
         qs.append(q)
         codes.append(x_c)
         spectrum.append(torch.from_numpy(np.repeat(spectra[index][None], len(clouds), 0)).float())

@@ -313,3 +313,33 @@ class _RotationGraph(torch.nn.Module):
 
     def forward(self, points):
         return self.model.encode_rotation(points)
+
+
+@pytest.mark.parametrize("true_rotation", [True, False])
+def test_the_code_bank_of_a_supervised_model_uses_the_true_rotation(true_rotation):
+    from dataclasses import replace
+    from gdvae.train import encode_bank, recipe
+    torch.manual_seed(0)
+    chosen = recipe("smoke")
+    chosen = replace(chosen, bank_true_rotation=true_rotation)
+    ae = Autoencoder(chosen.ae)
+    cloud = torch.randn(chosen.bank_copies, chosen.ae.points, 3)
+
+    class Sampler:
+        meshes = [None]
+
+        def clouds(self, index, copies):
+            return cloud[:copies]
+
+    torch.manual_seed(7)
+    bank = encode_bank(ae, Sampler(), np.ones((1, 6)), chosen)
+    torch.manual_seed(7)
+    rotations = random_rotation_matrices(chosen.bank_copies, full=chosen.ae.full_rotations)
+    ae.eval()
+    with torch.no_grad():
+        predicted = ae.encode_rotation(rotate(cloud, rotations))
+    expected_q = matrix_to_quaternion(rotations) if true_rotation else predicted
+    assert torch.allclose(bank["q"], expected_q, atol=1e-6)
+    with torch.no_grad():
+        expected_x, _ = ae.encode_shape(rotate(cloud, rotations), quaternion_to_matrix(expected_q))
+    assert torch.allclose(bank["x_c"], expected_x, atol=1e-5)
