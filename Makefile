@@ -1,5 +1,5 @@
 # The project's entry points. `make test` is what CI runs (.ci/run).
-.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking fuzz soak
+.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking fuzz soak eval-split
 
 VENV := .venv
 PYTHON := $(VENV)/bin/python
@@ -36,6 +36,12 @@ bench-tracking: onnxruntime node sim
 	bench/tracking.sh tune
 	bench/tracking.sh holdout
 	bench/tracking.sh final
+
+# The paper-structured evaluation set (models/README.md "Evaluation split"): 300 subjects per
+# family, one pose each, all in the test split, from a seed no training set uses.
+EVAL_DIR ?= /work/data/sim-eval
+eval-split: sim
+	./target/release/sim dataset --out $(EVAL_DIR) --subjects 300 --poses 1 --split 0,0,1 --seed 9000
 
 # Overload soak (README "Faults and overload"): a live feed at SOAK_FACTOR times the node's
 # capacity for SOAK_SECONDS against the real binary; prints the RSS series, drops and latency.

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import logging
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -104,15 +106,38 @@ def pose_transfer(ae, vae, dataset: MeshDataset, indices: list[int], codes: dict
     }
 
 
+def beta_ranges(root) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Each family's beta range per parameter, from the dataset's `dataset.json` (the sim writes
+    its families' BETA tables there); empty when the dataset has none."""
+    path = Path(root) / "dataset.json"
+    if not path.exists():
+        return {}
+    families = json.loads(path.read_text()).get("families", {})
+    return {name: (np.array([p["min"] for p in f["beta"]], dtype=float), np.array([p["max"] for p in f["beta"]], dtype=float))
+            for name, f in families.items() if f.get("beta")}
+
+
+def normalised_beta(beta: np.ndarray, family: str, ranges: dict) -> np.ndarray:
+    """beta mapped to [0, 1] per parameter by its family's range, so that E_beta weighs every
+    parameter alike (a raw MSE is dominated by the parameters with the widest ranges in metres);
+    by the observed range when the dataset gives none."""
+    low, high = ranges.get(family, (beta.min(0), beta.max(0)))
+    if low.shape != beta.shape[1:]:
+        low, high = beta.min(0), beta.max(0)
+    return (beta - low) / np.maximum(high - low, 1e-12)
+
+
 def family_retrieval(dataset: MeshDataset, indices: list[int], codes: dict) -> dict:
-    """Pose-aware retrieval scores and S per family (families with at least 5 shapes)."""
+    """Pose-aware retrieval scores and S per family (families with at least 5 shapes), with beta
+    normalised per parameter by its family's range."""
     truths = [dataset.items[i].truth for i in indices]
+    ranges = beta_ranges(dataset.root)
     retrieval = {}
     for family in sorted({t["family"] for t in truths if t}):
         rows = [k for k, t in enumerate(truths) if t and t["family"] == family]
         if len(rows) < 5:
             continue
-        beta = np.array([truths[k]["beta"] for k in rows])
+        beta = normalised_beta(np.array([truths[k]["beta"] for k in rows], dtype=float), family, ranges)
         theta = np.array([truths[k]["theta"] for k in rows])
         pick = lambda key: codes[key][rows].numpy()  # noqa: E731
         family_codes = {

@@ -133,3 +133,16 @@ def test_training_on_partial_views(tiny_dataset, tmp_path):
     refused = main(["train", str(tiny_dataset), "--out", str(tmp_path / "u"), "--recipe", "smoke", "--partial-views",
                     "0.5", "--unsupervised"])
     assert refused != 0 and not (tmp_path / "u" / "checkpoint.pt").exists()
+
+
+def test_beta_is_normalised_per_parameter_by_its_familys_range(tmp_path):
+    import json
+    from gdvae.evaluate import beta_ranges, normalised_beta
+    (tmp_path / "dataset.json").write_text(json.dumps({"families": {"biped": {"beta": [
+        {"name": "height", "min": 1.0, "max": 2.0}, {"name": "toe", "min": 0.01, "max": 0.03}]}}}))
+    ranges = beta_ranges(tmp_path)
+    beta = np.array([[1.5, 0.02], [2.0, 0.01]])
+    assert np.allclose(normalised_beta(beta, "biped", ranges), [[0.5, 0.5], [1.0, 0.0]])
+    # Without a range for the family: the observed range.
+    assert np.allclose(normalised_beta(beta, "quadruped", ranges), [[0.0, 1.0], [1.0, 0.0]])
+    assert beta_ranges(tmp_path / "missing") == {}
