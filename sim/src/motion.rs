@@ -354,11 +354,11 @@ pub fn gait_theta(skeleton: &Skeleton, family: Family, phase: f64) -> Vec<f64> {
                 let angle = TAU * (phase + offset);
                 let (swing_wave, flex_wave) = (angle.sin(), 0.5 - 0.5 * angle.cos());
                 if name.ends_with("shoulder") || name.ends_with("hip") {
-                    (0.3 * swing_wave, 0.0, limb_axis(skeleton, joint))
+                    (0.3 * swing_wave, 0.0, skeleton.limb_axis(joint))
                 } else if name.ends_with("elbow") || name.ends_with("knee") {
-                    (0.0, 0.45 * flex_wave, limb_axis(skeleton, joint))
+                    (0.0, 0.45 * flex_wave, skeleton.limb_axis(joint))
                 } else if name.ends_with("wrist") || name.ends_with("ankle") {
-                    (0.0, -0.3 * flex_wave, limb_axis(skeleton, joint))
+                    (0.0, -0.3 * flex_wave, skeleton.limb_axis(joint))
                 } else if name.starts_with("tail") {
                     (0.25 * (TAU * phase).sin(), 0.0, Vector3::z())
                 } else if name == "head" {
@@ -373,17 +373,13 @@ pub fn gait_theta(skeleton: &Skeleton, family: Family, phase: f64) -> Vec<f64> {
                 let offset = side_offset + if is_arm { 0.5 } else { 0.0 };
                 let angle = TAU * (phase + offset);
                 if name.ends_with("hip") {
-                    (0.35 * angle.sin(), 0.0, limb_axis(skeleton, joint))
+                    (0.35 * angle.sin(), 0.0, skeleton.limb_axis(joint))
                 } else if name.ends_with("knee") {
-                    (0.0, 0.6 * (0.5 - 0.5 * angle.cos()), limb_axis(skeleton, joint))
+                    (0.0, 0.6 * (0.5 - 0.5 * angle.cos()), skeleton.limb_axis(joint))
                 } else if name.ends_with("shoulder") {
-                    (0.25 * angle.sin(), 0.0, limb_axis(skeleton, joint))
+                    (0.25 * angle.sin(), 0.0, skeleton.limb_axis(joint))
                 } else if name.ends_with("elbow") {
-                    (
-                        0.0,
-                        -0.15 - 0.15 * (0.5 - 0.5 * angle.cos()),
-                        limb_axis(skeleton, joint),
-                    )
+                    (0.0, -0.15 - 0.15 * (0.5 - 0.5 * angle.cos()), skeleton.limb_axis(joint))
                 } else if name == "head" {
                     (0.04 * (2.0 * TAU * phase).sin(), 0.0, Vector3::y())
                 } else {
@@ -395,10 +391,4 @@ pub fn gait_theta(skeleton: &Skeleton, family: Family, phase: f64) -> Vec<f64> {
         theta[3 * (joint - 1)..3 * joint].copy_from_slice(rotation.as_slice());
     }
     theta
-}
-
-/// The horizontal axis across a limb bone: rotating about it moves the limb forwards and back.
-fn limb_axis(skeleton: &Skeleton, joint: usize) -> Vector3<f64> {
-    let bone = skeleton.bone_direction(joint, -Vector3::z());
-    Vector3::x().cross(&bone).try_normalize(1e-9).unwrap_or_else(Vector3::y)
 }

@@ -93,6 +93,14 @@ impl Skeleton {
             .collect()
     }
 
+    /// The horizontal axis across a limb's bone at rest: rotating a joint about it by a positive
+    /// angle moves the limb's distal end backwards (-x). Knees, elbows, wrists and ankles bend
+    /// about it only (see `family::JointLimit`), and the walking gait swings limbs about it.
+    pub fn limb_axis(&self, joint: usize) -> Vector3<f64> {
+        let bone = self.bone_direction(joint, -Vector3::z());
+        Vector3::x().cross(&bone).try_normalize(1e-9).unwrap_or_else(Vector3::y)
+    }
+
     /// Direction from a joint to its first child at rest (or `fallback` for end joints); used to
     /// separate bending from twisting when sampling poses.
     pub fn bone_direction(&self, joint: usize, fallback: Vector3<f64>) -> Vector3<f64> {

@@ -1,4 +1,6 @@
-//! The biped family: a human-like body in an A-pose with two three-joint arms and legs.
+//! The biped family: a human-like body in an A-pose with two three-joint arms and legs, and the
+//! front/back cues that make its heading observable: a face (nose, jaw), a deeper chest in front,
+//! buttocks behind, and feet that point forwards.
 //!
 //! Coordinates: metres, x forward, y left, z up (ROS REP-103), standing on z ≈ 0.
 
@@ -104,6 +106,50 @@ pub fn build(beta: &[f64]) -> Anatomy {
         0.95 * head_size,
     );
     parts.push(Part { shape, joint: head });
+    // Front/back cues a depth camera can see (a person is otherwise close to symmetric front to
+    // back): a face with a nose and jaw jutting forwards, a chest that is deeper in front, and
+    // buttocks behind.
+    let face = skull_bottom + Vector3::new(0.6 * head_size, 0.0, -0.1 * head_size);
+    parts.push(Part {
+        shape: RoundCone::new(
+            face,
+            face + Vector3::new(0.5 * head_size, 0.0, -0.15 * head_size),
+            0.35 * head_size,
+            // No thinner than a fingertip: the thinnest part sets the meshing grid.
+            (0.5 * arm_girth).max(0.12 * head_size),
+        ),
+        joint: head,
+    });
+    let chin = skull_bottom + Vector3::new(0.4 * head_size, 0.0, -0.6 * head_size);
+    parts.push(Part {
+        shape: RoundCone::new(
+            chin,
+            chin + Vector3::new(0.45 * head_size, 0.0, -0.1 * head_size),
+            0.45 * head_size,
+            0.3 * head_size,
+        ),
+        joint: head,
+    });
+    let breast = p(0.65 * chest_girth, 0.0, pelvis_height + 0.62 * torso_length);
+    parts.push(Part {
+        shape: RoundCone::new(
+            breast - Vector3::new(0.0, 0.3 * shoulder_width, 0.0),
+            breast + Vector3::new(0.0, 0.3 * shoulder_width, 0.0),
+            0.7 * chest_girth,
+            0.7 * chest_girth,
+        ),
+        joint: chest,
+    });
+    let seat = p(-0.55 * waist_girth, 0.0, pelvis_height - 0.02);
+    parts.push(Part {
+        shape: RoundCone::new(
+            seat - Vector3::new(0.0, 0.25 * hip_width, 0.0),
+            seat + Vector3::new(0.0, 0.25 * hip_width, 0.0),
+            0.75 * waist_girth,
+            0.75 * waist_girth,
+        ),
+        joint: pelvis,
+    });
 
     let shoulder_height = neck_base.z - 0.6 * chest_girth;
     for side in [1.0f64, -1.0] {

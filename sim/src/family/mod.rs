@@ -175,6 +175,52 @@ impl PoseMode {
 /// Twist about a bone is much stiffer than bending it (and is what breaks isometry when overdone).
 const TWIST_TO_BEND: f64 = 0.3;
 
+/// How far a joint may turn: anatomical limits that every sampled pose and the walking gait keep.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum JointLimit {
+    /// Bends about `Skeleton::limb_axis` only, one way: `sign` (+1: the distal end goes backwards,
+    /// as a knee; -1: forwards, as an elbow), at most `max` radians.
+    Hinge { sign: f64, max: f64 },
+    /// Turns any way, at most `max` radians in all (hips, shoulders, spine, neck, head, tail).
+    Ball { max: f64 },
+}
+
+impl JointLimit {
+    /// Whether `rotation` (axis-angle) keeps this limit, about `limb_axis` for a hinge.
+    pub fn holds(self, rotation: &Vector3<f64>, limb_axis: &Vector3<f64>) -> bool {
+        let angle = rotation.norm();
+        match self {
+            JointLimit::Ball { max } => angle <= max + 1e-9,
+            JointLimit::Hinge { sign, max } => {
+                let along = rotation.dot(limb_axis);
+                (rotation - along * limb_axis).norm() <= 1e-9 * (1.0 + angle)
+                    && sign * along >= -1e-12
+                    && angle <= max + 1e-9
+            }
+        }
+    }
+}
+
+impl Family {
+    /// A joint's anatomical limit, by its name. Quadrupeds: elbows and knees bend backwards,
+    /// wrists and ankles forwards (a dog's carpus and hock); bipeds: knees backwards, elbows
+    /// forwards; wrists and ankles of bipeds, and every other joint, turn within a cone.
+    pub fn joint_limit(self, name: &str) -> JointLimit {
+        let hinge = |sign: f64, max: f64| JointLimit::Hinge { sign, max };
+        match self {
+            Family::Quadruped if name.ends_with("elbow") || name.ends_with("knee") => hinge(1.0, 2.2),
+            Family::Quadruped if name.ends_with("wrist") || name.ends_with("ankle") => hinge(-1.0, 1.6),
+            Family::Biped if name.ends_with("knee") => hinge(1.0, 2.4),
+            Family::Biped if name.ends_with("elbow") => hinge(-1.0, 2.4),
+            _ if name.starts_with("tail") => JointLimit::Ball { max: 1.6 },
+            _ if name.contains("spine") || name == "chest" => JointLimit::Ball { max: 0.6 },
+            _ if name.contains("neck") || name == "head" => JointLimit::Ball { max: 1.0 },
+            _ if name.contains("wrist") || name.contains("ankle") => JointLimit::Ball { max: 0.9 },
+            _ => JointLimit::Ball { max: 1.6 },
+        }
+    }
+}
+
 /// Vertices per subject mesh (the paper's SMAL meshes have 3,889).
 pub const DEFAULT_VERTEX_COUNT: usize = 4000;
 
@@ -261,11 +307,19 @@ impl Subject {
     }
 
     /// A pose from the prior: per joint, Gaussian bending about two axes orthogonal to the bone and
-    /// a smaller twist about it, scaled by the joint's mobility.
+    /// a smaller twist about it, scaled by the joint's mobility, within the joint's anatomical
+    /// limit (a hinge bends about its limb axis only, one way; any joint turns at most its range).
     pub fn sample_theta(&self, mode: PoseMode, rng: &mut impl Rng) -> Vec<f64> {
         let sigma = mode.bend_sigma();
         let mut theta = Vec::with_capacity(self.pose_dimension());
         for joint in 1..self.skeleton.len() {
+            let limit = self.family.joint_limit(self.skeleton.joints[joint].name);
+            if let JointLimit::Hinge { sign, max } = limit {
+                let normal: f64 = StandardNormal.sample(rng);
+                let angle = (sigma * self.mobility[joint] * normal.abs()).min(max);
+                theta.extend_from_slice((sign * angle * self.skeleton.limb_axis(joint)).as_slice());
+                continue;
+            }
             let parent = self.skeleton.joints[joint].parent.unwrap_or(0);
             let incoming = (self.skeleton.joints[joint].rest_position - self.skeleton.joints[parent].rest_position)
                 .try_normalize(1e-12)
@@ -278,8 +332,13 @@ impl Subject {
             let across_too = along.cross(&across);
             let mut normal = || -> f64 { StandardNormal.sample(rng) };
             let scale = sigma * self.mobility[joint];
-            let rotation =
+            let mut rotation =
                 scale * (normal() * across + normal() * across_too) + TWIST_TO_BEND * scale * normal() * along;
+            if let JointLimit::Ball { max } = limit {
+                if rotation.norm() > max {
+                    rotation *= max / rotation.norm();
+                }
+            }
             theta.extend_from_slice(rotation.as_slice());
         }
         theta

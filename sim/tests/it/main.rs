@@ -1,5 +1,6 @@
 //! The simulator's integration tests: one binary, a module per area.
 
+mod anatomy;
 mod cli;
 mod dataset;
 mod meshes;
