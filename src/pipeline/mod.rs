@@ -83,6 +83,26 @@ pub struct RunSummary {
     pub snapshot: Snapshot,
 }
 
+/// A source that could not start: left out (logged and listed) when optional, else the run's error.
+fn cannot_start(
+    source: &crate::config::SourceSettings,
+    message: String,
+    failed_sources: &mut Vec<(String, String)>,
+) -> Result<(), PipelineError> {
+    if !source.optional {
+        return Err(PipelineError::Source {
+            stream: source.stream.clone(),
+            message: format!("cannot start: {message}"),
+        });
+    }
+    log::error!(
+        "optional source '{}' cannot start, running without it: {message}",
+        source.stream
+    );
+    failed_sources.push((source.stream.clone(), format!("cannot start: {message}")));
+    Ok(())
+}
+
 /// Runs the pipeline until every source has ended (replay) or `stop` is set (daemon), then drains.
 pub fn run(
     config: &Config,
@@ -106,19 +126,7 @@ pub fn run(
                 log::info!("source '{}': {found}", source.stream);
                 starting.push(source);
             }
-            Err(message) if source.optional => {
-                log::error!(
-                    "optional source '{}' cannot start, running without it: {message}",
-                    source.stream
-                );
-                failed_sources.push((source.stream.clone(), format!("cannot start: {message}")));
-            }
-            Err(message) => {
-                return Err(PipelineError::Source {
-                    stream: source.stream.clone(),
-                    message: format!("cannot start: {message}"),
-                })
-            }
+            Err(message) => cannot_start(source, message, &mut failed_sources)?,
         }
     }
     if starting.is_empty() {
@@ -170,19 +178,7 @@ pub fn run(
                     sources::Running::Subscription(subscription) => subscribers.push(subscription),
                 }
             }
-            Err(e) if source.optional => {
-                log::error!(
-                    "optional source '{}' cannot start, running without it: {e}",
-                    source.stream
-                );
-                failed_sources.push((source.stream.clone(), format!("cannot start: {e}")));
-            }
-            Err(message) => {
-                return Err(PipelineError::Source {
-                    stream: source.stream.clone(),
-                    message: format!("cannot start: {message}"),
-                })
-            }
+            Err(message) => cannot_start(source, message, &mut failed_sources)?,
         }
     }
     let source_errors = context.errors.clone();
