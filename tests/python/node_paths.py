@@ -1,5 +1,5 @@
-"""Shared by the node's Python checks: the repository, the built binaries, a free port, and the
-node binary started on a config and stopped by SIGINT."""
+"""Shared by the node's Python checks: the repository, the built binaries, the sample's settings,
+a free port, and the node binary started on a config and stopped by SIGINT."""
 
 import contextlib
 import json
@@ -12,6 +12,15 @@ import socket
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 NODE = os.environ.get("NODE_BIN", str(ROOT / "target" / "release" / "gdvae-node"))
 SIM = os.environ.get("SIM_BIN", str(ROOT / "target" / "release" / "sim"))
+
+
+def sample_settings():
+    """TOML for a node on the sample recording: the shipped bundle (one thread), no periodic
+    summary, and the sample camera's [prepare] section as `config/replay.toml` has it."""
+    replay = (ROOT / "config/replay.toml").read_text()
+    prepare = replay[replay.index("[prepare]"):replay.index("[publish]")]
+    return (f'[model]\nbundle = "{ROOT / "models/bundles/cpu-gdvaepp"}"\nthreads = 1\n'
+            f"[pipeline]\nsummary_seconds = 0.0\n{prepare}")
 
 
 def free_port():

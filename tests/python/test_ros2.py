@@ -19,7 +19,7 @@ import zenoh
 import zenoh.ext
 from rosbags.typesys import Stores, get_typestore
 
-from node_paths import NODE, ROOT, client, free_port
+from node_paths import NODE, ROOT, client, free_port, sample_settings
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
 NAMESPACE = "/robot/gdvae"
@@ -79,16 +79,7 @@ def write_config(tmp_path, endpoint):
     config.write_text(f"""
 [node]
 name = "ros"
-[model]
-bundle = "{ROOT / 'models/bundles/cpu-gdvaepp'}"
-threads = 1
-[pipeline]
-summary_seconds = 0.0
-[prepare]
-sensor_to_gravity_rotation = [[0.0, 0.188847, -0.982006], [1.0, 0.0, 0.0], [0.0, -0.982006, -0.188847]]
-sensor_to_gravity_translation = [2.6, 0.0, 1.3]
-crop = [-1.2, -1.2, 0.02, 1.2, 1.2, 2.5]
-cluster_m = 0.06
+{sample_settings()}
 [publish]
 zenoh = false
 [publish.ros2]

@@ -5,7 +5,7 @@ import time
 
 import json
 
-from node_paths import ROOT, client, free_port, running_node
+from node_paths import ROOT, client, free_port, running_node, sample_settings
 
 
 def test_a_python_subscriber_gets_states_status_and_liveliness(tmp_path):
@@ -14,15 +14,7 @@ def test_a_python_subscriber_gets_states_status_and_liveliness(tmp_path):
     config.write_text(f"""
 [node]
 name = "py"
-[model]
-bundle = "{ROOT / 'models/bundles/cpu-gdvaepp'}"
-threads = 1
-[pipeline]
-summary_seconds = 0.0
-[prepare]
-sensor_to_gravity_rotation = [[0.0, 0.188847, -0.982006], [1.0, 0.0, 0.0], [0.0, -0.982006, -0.188847]]
-sensor_to_gravity_translation = [2.6, 0.0, 1.3]
-crop = [-1.2, -1.2, 0.02, 1.2, 1.2, 2.5]
+{sample_settings()}
 [zenoh]
 listen = ["{endpoint}"]
 multicast_scouting = false
