@@ -70,3 +70,29 @@ pub fn wait_for_subscriber(session: &zenoh::Session, key: &str) {
     });
     assert!(matched, "no subscriber for {key} appeared within 10 s");
 }
+
+/// `gdvae-node -q run --config CONFIG` from the repository root, its output piped.
+pub fn spawn_run(config: &Path) -> std::process::Child {
+    std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
+        .current_dir(repo())
+        .args(["-q", "run", "--config"])
+        .arg(config)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// Sends `signal` (e.g. "-TERM") to `child`.
+pub fn send_signal(child: &std::process::Child, signal: &str) {
+    let status = std::process::Command::new("kill")
+        .args([signal, &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+}
+
+/// Lines written to a JSON-lines file so far (0 before it exists).
+pub fn line_count(path: &Path) -> usize {
+    std::fs::read_to_string(path).map(|t| t.lines().count()).unwrap_or(0)
+}

@@ -16,7 +16,9 @@ use gdvae_node::sources::ros2::{decode_camera_info, decode_depth_image, CameraIn
 use gdvae_node::stats::Stats;
 use zenoh::Wait;
 
-use crate::helpers::{client_session, free_endpoint, repo, sample_recording, test_config, wait_until};
+use crate::helpers::{
+    client_session, free_endpoint, line_count, repo, sample_recording, send_signal, spawn_run, test_config, wait_until,
+};
 
 /// Little-endian CDR with alignment relative to the 4-byte encapsulation header.
 struct Cdr(Vec<u8>);
@@ -265,24 +267,13 @@ fn sigterm_is_obeyed_while_a_paced_replay_waits_out_a_long_gap() {
         gap.display().to_string()
     )
     .unwrap();
-    let child = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
-        .current_dir(repo())
-        .args(["-q", "run", "--config"])
-        .arg(&config)
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let lines = || std::fs::read_to_string(&jsonl).map(|t| t.lines().count()).unwrap_or(0);
+    let child = spawn_run(&config);
+    let lines = || line_count(&jsonl);
     assert!(
         wait_until(Duration::from_secs(60), || lines() >= 1),
         "the first frame is published"
     );
-    let status = std::process::Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
+    send_signal(&child, "-TERM");
     let started = std::time::Instant::now();
     let output = child.wait_with_output().unwrap();
     assert!(

@@ -242,23 +242,13 @@ fn interrupted_run_drains(signal: &str) {
         inputs.display().to_string()
     )
     .unwrap();
-    let child = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
-        .args(["-q", "run", "--config"])
-        .arg(&config)
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let lines = || std::fs::read_to_string(&jsonl).map(|t| t.lines().count()).unwrap_or(0);
+    let child = spawn_run(&config);
+    let lines = || line_count(&jsonl);
     assert!(
         wait_until(Duration::from_secs(60), || lines() >= 5),
         "the node publishes"
     );
-    let status = std::process::Command::new("kill")
-        .args([signal, &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
+    send_signal(&child, signal);
     let started = std::time::Instant::now();
     let output = child.wait_with_output().unwrap();
     assert!(started.elapsed() < Duration::from_secs(30));
