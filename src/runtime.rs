@@ -151,6 +151,26 @@ const OUTPUTS: [&str; 8] = [
     "z_I_logvar",
 ];
 
+/// An ONNX Runtime session of one of a bundle's graphs: `threads` intra-op threads, one inter-op
+/// thread; `spin` lets idle threads spin for work.
+fn open_session(file: &Path, library: Option<&Path>, threads: usize, spin: bool) -> Result<Session, RuntimeError> {
+    let environment = environment(library)?;
+    let session_error = |e: ort::Error| RuntimeError::Session {
+        file: file.to_path_buf(),
+        message: e.to_string(),
+    };
+    Session::builder(environment)
+        .map_err(session_error)?
+        .with_intra_threads(threads.max(1))
+        .map_err(|e| session_error(e.into()))?
+        .with_inter_threads(1)
+        .map_err(|e| session_error(e.into()))?
+        .with_intra_op_spinning(spin)
+        .map_err(|e| session_error(e.into()))?
+        .commit_from_file(file)
+        .map_err(session_error)
+}
+
 /// One ONNX Runtime session of a bundle's encoder (sessions are not shared between threads).
 pub struct Encoder {
     session: Session,
@@ -161,22 +181,8 @@ impl Encoder {
     /// `spin`: let idle ONNX Runtime threads spin for work (lowest latency on otherwise idle cores;
     /// wasted CPU when the node's other stages share the cores).
     pub fn load(bundle: &Bundle, library: Option<&Path>, threads: usize, spin: bool) -> Result<Self, RuntimeError> {
-        let environment = environment(library)?;
         let file = bundle.path("encoder.onnx");
-        let session_error = |e: ort::Error| RuntimeError::Session {
-            file: file.clone(),
-            message: e.to_string(),
-        };
-        let session = Session::builder(environment)
-            .map_err(session_error)?
-            .with_intra_threads(threads.max(1))
-            .map_err(|e| session_error(e.into()))?
-            .with_inter_threads(1)
-            .map_err(|e| session_error(e.into()))?
-            .with_intra_op_spinning(spin)
-            .map_err(|e| session_error(e.into()))?
-            .commit_from_file(&file)
-            .map_err(session_error)?;
+        let session = open_session(&file, library, threads, spin)?;
         let found: Vec<String> = session.outputs().iter().map(|o| o.name().to_string()).collect();
         for name in OUTPUTS {
             if !found.iter().any(|f| f == name) {
@@ -260,20 +266,8 @@ pub struct ShapeDecoder {
 
 impl ShapeDecoder {
     pub fn load(bundle: &Bundle, library: Option<&Path>) -> Result<Self, RuntimeError> {
-        let environment = environment(library)?;
         let file = bundle.path("decoder.onnx");
-        let session_error = |e: ort::Error| RuntimeError::Session {
-            file: file.clone(),
-            message: e.to_string(),
-        };
-        let session = Session::builder(environment)
-            .map_err(session_error)?
-            .with_intra_threads(1)
-            .map_err(|e| session_error(e.into()))?
-            .with_inter_threads(1)
-            .map_err(|e| session_error(e.into()))?
-            .commit_from_file(&file)
-            .map_err(session_error)?;
+        let session = open_session(&file, library, 1, false)?;
         if !session.outputs().iter().any(|o| o.name() == "canonical_points") {
             return Err(RuntimeError::MissingOutput {
                 file: file.clone(),
