@@ -201,6 +201,14 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
     // a neighbour search from every point, at a fraction of its cost on dense surfaces.
     let cell = radius / 3f32.sqrt();
     let radius_squared = radius * radius;
+    // Cell coordinates must stay far inside i64 (so that neighbours and box sizes cannot overflow):
+    // a cloud reaching beyond 2^40 cells (10^10 m at a 1 cm radius) is left as it is. The node
+    // drops points beyond 1e5 m before prepare; this guards the function itself (found by
+    // `cargo fuzz run prepare`).
+    const LIMIT: f32 = (1u64 << 40) as f32;
+    if points.iter().flatten().any(|c| !((c / cell).abs() < LIMIT)) {
+        return 0;
+    }
     let key = |p: &[f32; 3]| p.map(|c| (c / cell).floor() as i64);
     let mut id: CellMap = CellMap::default();
     let mut members: Vec<Vec<usize>> = Vec::new();
@@ -223,8 +231,9 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
         .iter()
         .fold([i64::MIN; 3], |m, k| [0, 1, 2].map(|a| m[a].max(k[a])));
     let dims = [0, 1, 2].map(|a| (high[a] - low[a] + 1) as u64);
-    let dense: Option<Vec<u32>> = (dims.iter().product::<u64>() <= 1 << 22).then(|| {
-        let mut grid = vec![u32::MAX; dims.iter().product::<u64>() as usize];
+    let cells = dims.iter().try_fold(1u64, |total, d| total.checked_mul(*d));
+    let dense: Option<Vec<u32>> = cells.filter(|n| *n <= 1 << 22).map(|n| {
+        let mut grid = vec![u32::MAX; n as usize];
         for (i, k) in keys.iter().enumerate() {
             grid[(((k[0] - low[0]) as u64 * dims[1] + (k[1] - low[1]) as u64) * dims[2] + (k[2] - low[2]) as u64)
                 as usize] = i as u32;

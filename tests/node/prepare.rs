@@ -274,3 +274,20 @@ fn the_largest_cluster_is_the_one_a_neighbour_search_finds() {
         assert!(removed + points.len() > 0);
     }
 }
+
+#[test]
+fn the_largest_cluster_of_a_cloud_spanning_a_huge_box_is_found_without_overflow() {
+    // Found by `cargo fuzz run prepare`: the cells of the occupied box overflowed u64 when
+    // multiplied, and the dense grid was sized by the wrapped product. 2^22 cells along each axis
+    // (about 145 km at 6 cm) make 2^66, which wrapped to an empty grid.
+    let cell = 0.06f32 / 3f32.sqrt();
+    let far_corner = (4_194_304.0 - 0.5) * cell;
+    let mut points = vec![[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.02, 0.0, 0.0], [far_corner; 3]];
+    let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, 0.06);
+    assert_eq!(removed, 1);
+    assert_eq!(points.len(), 3);
+    // Coordinates beyond what a grid of cells can index: the cloud is left as it is.
+    let mut far = vec![[0.0, 0.0, 0.0], [3e38, 0.0, 0.0]];
+    assert_eq!(gdvae_node::prepare::keep_largest_cluster(&mut far, 0.06), 0);
+    assert_eq!(far.len(), 2);
+}
