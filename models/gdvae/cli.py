@@ -182,6 +182,15 @@ def export_command(args) -> int:
     return 0
 
 
+def screen_command(args) -> int:
+    from .screen import screen
+
+    text = screen(args.ae_run, args.dataset, args.out, args.recipe, args.iterations, args.factors, args.jobs,
+                  args.sim or default_sim_binary(), "python -m gdvae " + " ".join(args.argv))
+    print(text)
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m gdvae", description="GDVAE++ training kit")
     parser.add_argument("-v", "--verbose", action="store_true")
@@ -211,7 +220,8 @@ def main(argv=None) -> int:
                           help="VAE L_R without the paper's 1/dim(x_c) (better reconstruction, lower S)")
     training.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE",
                           help="override a recipe field, e.g. vae.omega_jacobian=2000 (repeatable; recorded in recipe.json)")
-    training.add_argument("--stop-after", choices=["ae"], help="stop after this stage")
+    training.add_argument("--stop-after", choices=["ae", "bank"],
+                          help="stop after this stage (bank: the AE and its code bank, for VAEs that --init-from this run)")
     training.add_argument("--init-from", help="reuse another run's trained AE and code bank (compare VAE regimes)")
     training.add_argument("--limit", type=int, help="use only the first N meshes")
     training.set_defaults(handler=train_command)
@@ -227,10 +237,24 @@ def main(argv=None) -> int:
     evaluation.add_argument("--ae-only", action="store_true",
                             help="only the autoencoder's metrics (also for a run still in its AE stage)")
     evaluation.add_argument("--retrieval-only", action="store_true",
-                            help="only retrieval, S (five draws) and the posterior statistics: minutes, for comparing runs")
+                            help="only retrieval, S (five draws), the posterior statistics and pose transfer: minutes, for comparing runs")
     evaluation.add_argument("--partial-views", type=int, default=5, metavar="N",
                             help="camera-like views per mesh for the partial-view metrics (0: skip them)")
     evaluation.set_defaults(handler=evaluate_command)
+
+    screening = commands.add_parser("screen", help="2^k screen of the VAE objective's terms on one AE and code bank")
+    screening.add_argument("ae_run", help="run folder with a trained AE and code bank (train --stop-after bank)")
+    screening.add_argument("dataset", help="the dataset the AE was trained on (its test split is measured)")
+    screening.add_argument("--out", required=True, help="screen folder: one run per cell, screen.md, screen.json")
+    screening.add_argument("--recipe", default="cpu", choices=["cpu", "paper", "smoke"],
+                           help="the VAE's recipe (the AE and code bank are the run's)")
+    screening.add_argument("--iterations", type=int, default=1000, help="VAE iterations per cell (default 1000)")
+    screening.add_argument("--factors", default="RBCJ",
+                           help="factors to vary, by letter: R (L_R's 1/n), B (beta_4), C (L_Sigma's form), "
+                                "J (L_J); the others keep the recipe's values (default RBCJ)")
+    screening.add_argument("--jobs", type=int, default=2, help="cells trained at once (default 2)")
+    screening.add_argument("--sim", help="sim binary for pose transfer (default: target/release/sim)")
+    screening.set_defaults(handler=screen_command)
 
     export = commands.add_parser("export", help="write a run as an ONNX bundle (the node's model format)")
     export.add_argument("run", help="run folder written by `train`")

@@ -169,7 +169,8 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray | None, split: s
              retrieval_only: bool = False) -> dict:
     """Every metric on one split. `vae` None: the AE's metrics only. `partial_views`: view
     directions per mesh for the camera-like partial-view metrics (0: skip them). `retrieval_only`:
-    only retrieval, S and the posterior statistics (minutes, for comparing runs)."""
+    only retrieval, S, the posterior statistics and (with the sim) pose transfer: minutes, for
+    comparing runs."""
     ae.eval()
     if vae is not None:
         vae.eval()
@@ -189,6 +190,8 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray | None, split: s
         codes = encode_all(ae, vae, clouds, random_rotation_matrices(len(clouds), full=full_rotations), spectrum)
         metrics["posterior"] = posterior_statistics(codes)
         metrics.update(retrieval_metrics(ae, vae, dataset, indices, codes, spectrum, rng, full_rotations))
+        if sim_binary and made_by_sim(dataset):
+            metrics["pose_transfer"] = pose_transfer(ae, vae, dataset, indices, codes, sim_binary, rng)
         return metrics
     fresh = sampler.one_each()
 

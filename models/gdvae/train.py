@@ -74,7 +74,7 @@ def recipe(name: str, regime: str = "gdvae++", kind: str = "ftl") -> Recipe:
         # L_R keeps the paper's 1/n: without it the decoder reconstructs far better but S drops
         # (models/README.md, "Reconstruction normalisation"); `--relative-reconstruction` drops it.
         return Recipe("cpu", ae, replace(vae, latent=ae.latent, width_scale=0.25, flow_hidden=400),
-                      ae_iterations=7700, ae_pretrain_iterations=300, ae_batch=24, ae_learning_rate=1e-3,
+                      ae_iterations=7700, ae_pretrain_iterations=2000, ae_batch=24, ae_learning_rate=1e-3,
                       vae_iterations=3000, vae_batch=256)
     if name == "smoke":
         ae = AEConfig(kind=kind, points=128, latent=48, rotation_hidden=(16, 32), shape_hidden=(16, 32),
@@ -231,10 +231,17 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         raise ValueError("partial views need the supervised AE (its target is the whole canonical cloud)")
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    if init_from is not None:  # record how the reused AE was actually trained, for the bundle's manifest
+    if init_from is not None:  # the reused AE is the source's: its configuration and how it was trained
         source_recipe = json.loads((Path(init_from) / "recipe.json").read_text())
+        source_ae = AEConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in source_recipe["ae"].items()})
+        if source_ae != chosen.ae:
+            log.info("the AE configuration is %s's (reused with its weights)", init_from)
+        chosen.ae = source_ae
+        chosen.vae = replace(chosen.vae, latent=source_ae.latent)
         chosen.ae_iterations = source_recipe["ae_iterations"]
+        chosen.ae_pretrain_iterations = source_recipe.get("ae_pretrain_iterations", chosen.ae_pretrain_iterations)
         chosen.partial_views = source_recipe.get("partial_views", 0.0)
+        chosen.bank_true_rotation = source_recipe.get("bank_true_rotation", False)
     (run_dir / "recipe.json").write_text(json.dumps(asdict(chosen), indent=2, default=str))
     (run_dir / "dataset.json").write_text(json.dumps(dataset_summary(dataset), indent=2))
     torch.manual_seed(chosen.seed)
@@ -246,9 +253,6 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         source = torch.load(Path(init_from) / "checkpoint.pt", weights_only=False)
         if "bank" not in source:
             raise ValueError(f"{init_from}: its AE stage has not finished; nothing to start from")
-        source_recipe = json.loads((Path(init_from) / "recipe.json").read_text())
-        if source_recipe["ae"] != json.loads(json.dumps(asdict(chosen.ae))):
-            raise ValueError(f"{init_from} was trained with another AE configuration than this recipe's")
         state = {"stage": "vae", "iteration": 0, "ae": source["ae"], "bank": source["bank"]}
         log.info("starting from the AE and code bank of %s", init_from)
     else:
@@ -278,6 +282,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         bank = encode_bank(ae, sampler, spectra[train_indices], chosen)
         state = {"stage": "vae", "iteration": 0, "bank": bank}
         save(state)
+    if stop_after == "bank":
+        return {"ae": ae}
     bank = state["bank"]
 
     vae = LatentVAE(replace(chosen.vae, latent=chosen.ae.latent, spectrum=spectra.shape[1]))
