@@ -186,7 +186,7 @@ def screen_command(args) -> int:
     from .screen import screen
 
     text = screen(args.ae_run, args.dataset, args.out, args.recipe, args.iterations, args.factors, args.jobs,
-                  args.sim or default_sim_binary(), "python -m gdvae " + " ".join(args.argv))
+                  args.sim or default_sim_binary(), "python -m gdvae " + " ".join(args.argv), fixed=args.set or [])
     print(text)
     return 0
 
@@ -252,6 +252,8 @@ def main(argv=None) -> int:
     screening.add_argument("--factors", default="RBCJ",
                            help="factors to vary, by letter: R (L_R's 1/n), B (beta_4), C (L_Sigma's form), "
                                 "J (L_J); the others keep the recipe's values (default RBCJ)")
+    screening.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE",
+                           help="a recipe override for every cell, e.g. vae.omega_jacobian=0 (repeatable)")
     screening.add_argument("--jobs", type=int, default=2, help="cells trained at once (default 2)")
     screening.add_argument("--sim", help="sim binary for pose transfer (default: target/release/sim)")
     screening.set_defaults(handler=screen_command)

@@ -52,15 +52,16 @@ def cell_name(levels: dict[str, int]) -> str:
     return "-".join(f"{name}{level}" for name, level in levels.items())
 
 
-def run_cell(levels: dict[str, int], factors: list[Factor], ae_run: str, dataset: str, folder: Path,
-             recipe: str, iterations: int, threads: int, sim: str | None) -> dict:
+def run_cell(levels: dict[str, int], factors: list[Factor], fixed: list[str], ae_run: str, dataset: str,
+             folder: Path, recipe: str, iterations: int, threads: int, sim: str | None) -> dict:
     """Trains (or resumes) and evaluates one cell; returns its metrics."""
     run = folder / cell_name(levels)
     metrics_file = run / "metrics.json"
     if metrics_file.exists():
         return json.loads(metrics_file.read_text())
     environment = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
-    settings = [f"--set={f.field}={f.alternative if levels[f.name] else f.paper}" for f in factors]
+    settings = [f"--set={assignment}" for assignment in fixed]
+    settings += [f"--set={f.field}={f.alternative if levels[f.name] else f.paper}" for f in factors]
     python = [sys.executable, "-m", "gdvae"]
     started = time.monotonic()
     with open(run.with_suffix(".log"), "a") as output:
@@ -132,7 +133,10 @@ def table(rows: list[dict], effects: dict, factors: list[Factor], command: str) 
 
 
 def screen(ae_run: str, dataset: str, out: str, recipe: str, iterations: int, factor_names: str, jobs: int,
-           sim: str | None, command: str) -> str:
+           sim: str | None, command: str, fixed: list[str] = ()) -> str:
+    """Trains and measures every cell (resuming finished ones), writes screen.md and screen.json.
+    `fixed`: `--set` assignments applied to every cell (e.g. a factor left out of the design held at
+    its alternative level)."""
     known = {f.name: f for f in FACTORS}
     unknown = [name for name in factor_names if name not in known]
     if unknown:
@@ -146,12 +150,13 @@ def screen(ae_run: str, dataset: str, out: str, recipe: str, iterations: int, fa
     threads = max(1, (os.cpu_count() or 1) // jobs)
     log.info("screen: %d cells x %d VAE iterations, %d at a time, into %s", len(design), iterations, jobs, folder)
     with ThreadPoolExecutor(jobs) as pool:
-        results = list(pool.map(lambda levels: run_cell(levels, factors, ae_run, dataset, folder, recipe,
-                                                        iterations, threads, sim), design))
+        results = list(pool.map(lambda levels: run_cell(levels, factors, list(fixed), ae_run, dataset, folder,
+                                                        recipe, iterations, threads, sim), design))
     rows = [summarise(levels, metrics) for levels, metrics in zip(design, results)]
     effects = main_effects(rows, factors)
     text = table(rows, effects, factors, command)
-    (folder / "screen.json").write_text(json.dumps({"command": command, "iterations": iterations, "cells": rows,
+    (folder / "screen.json").write_text(json.dumps({"command": command, "iterations": iterations,
+                                                    "fixed": list(fixed), "cells": rows,
                                                     "main_effects": effects}, indent=2) + "\n")
     (folder / "screen.md").write_text(text)
     return text

@@ -159,14 +159,14 @@ def test_screen_trains_one_vae_per_cell_on_the_same_bank_and_tabulates_them(tiny
     assert state["stage"] == "vae" and "bank" in state and "vae" not in state  # stopped with the bank built
     screen_dir = tmp_path / "screen"
     assert main(["screen", str(ae_run), str(tiny_dataset), "--out", str(screen_dir), "--recipe", "smoke",
-                 "--iterations", "2", "--factors", "CJ", "--jobs", "1"]) == 0
+                 "--iterations", "2", "--factors", "CJ", "--jobs", "1", "--set", "vae.beta_inter_tc=8"]) == 0
     result = json.loads((screen_dir / "screen.json").read_text())
     assert [c["cell"] for c in result["cells"]] == ["C0-J0", "C0-J1", "C1-J0", "C1-J1"]
     for cell in result["cells"]:
         recipe = json.loads((screen_dir / cell["cell"] / "recipe.json").read_text())
         assert recipe["vae"]["covariance_form"] == ("correlation" if cell["levels"]["C"] else "covariance")
         assert recipe["vae"]["omega_jacobian"] == (0.0 if cell["levels"]["J"] else 200.0)
-        assert recipe["vae_iterations"] == 2
+        assert recipe["vae_iterations"] == 2 and recipe["vae"]["beta_inter_tc"] == 8.0
         assert cell["z_E_active"] >= 0 and set(cell["S_by_family"]) == {"blobA", "blobB"}
     assert set(result["main_effects"]) == {"C", "J"}
     assert "| C | J |" in (screen_dir / "screen.md").read_text()
