@@ -251,7 +251,7 @@ def main(argv=None) -> int:
     screening.add_argument("--iterations", type=int, default=1000, help="VAE iterations per cell (default 1000)")
     screening.add_argument("--factors", default="RBCJ",
                            help="factors to vary, by letter: R (L_R's 1/n), B (beta_4), C (L_Sigma's form), "
-                                "J (L_J); the others keep the recipe's values (default RBCJ)")
+                                "J (L_J), K (beta_2); the others keep the recipe's values (default RBCJ)")
     screening.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE",
                            help="a recipe override for every cell, e.g. vae.omega_jacobian=0 (repeatable)")
     screening.add_argument("--jobs", type=int, default=2, help="cells trained at once (default 2)")

@@ -40,6 +40,7 @@ FACTORS = (
     Factor("C", "L_Sigma: raw covariances (paper) or squared correlations", "vae.covariance_form",
            "covariance", "correlation"),
     Factor("J", "L_J: omega_J = 200 (paper) or off", "vae.omega_jacobian", "200", "0"),
+    Factor("K", "beta_2 (dimension-wise KL): 20 (paper, HA) or 2", "vae.beta_dimension_kl", "20", "2"),
 )
 
 
