@@ -130,26 +130,20 @@ pub fn build(beta: &[f64]) -> Anatomy {
         ),
         joint: head,
     });
+    // A bar across the body (along y) of half-length `half_width` and radius `radius`.
+    let across = |centre: Point3<f64>, half_width: f64, radius: f64, joint| Part {
+        shape: RoundCone::new(
+            centre - Vector3::new(0.0, half_width, 0.0),
+            centre + Vector3::new(0.0, half_width, 0.0),
+            radius,
+            radius,
+        ),
+        joint,
+    };
     let breast = p(0.65 * chest_girth, 0.0, pelvis_height + 0.62 * torso_length);
-    parts.push(Part {
-        shape: RoundCone::new(
-            breast - Vector3::new(0.0, 0.3 * shoulder_width, 0.0),
-            breast + Vector3::new(0.0, 0.3 * shoulder_width, 0.0),
-            0.7 * chest_girth,
-            0.7 * chest_girth,
-        ),
-        joint: chest,
-    });
+    parts.push(across(breast, 0.3 * shoulder_width, 0.7 * chest_girth, chest));
     let seat = p(-0.55 * waist_girth, 0.0, pelvis_height - 0.02);
-    parts.push(Part {
-        shape: RoundCone::new(
-            seat - Vector3::new(0.0, 0.25 * hip_width, 0.0),
-            seat + Vector3::new(0.0, 0.25 * hip_width, 0.0),
-            0.75 * waist_girth,
-            0.75 * waist_girth,
-        ),
-        joint: pelvis,
-    });
+    parts.push(across(seat, 0.25 * hip_width, 0.75 * waist_girth, pelvis));
 
     let shoulder_height = neck_base.z - 0.6 * chest_girth;
     for side in [1.0f64, -1.0] {
