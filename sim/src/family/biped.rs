@@ -109,27 +109,19 @@ pub fn build(beta: &[f64]) -> Anatomy {
     // Front/back cues a depth camera can see (a person is otherwise close to symmetric front to
     // back): a face with a nose and jaw jutting forwards, a chest that is deeper in front, and
     // buttocks behind.
+    // A cone on the head from `start` along `offset`.
+    let on_head = |start: Point3<f64>, offset: Vector3<f64>, r0: f64, r1: f64| Part {
+        shape: RoundCone::new(start, start + offset, r0, r1),
+        joint: head,
+    };
     let face = skull_bottom + Vector3::new(0.6 * head_size, 0.0, -0.1 * head_size);
-    parts.push(Part {
-        shape: RoundCone::new(
-            face,
-            face + Vector3::new(0.5 * head_size, 0.0, -0.15 * head_size),
-            0.35 * head_size,
-            // No thinner than a fingertip: the thinnest part sets the meshing grid.
-            (0.5 * arm_girth).max(0.12 * head_size),
-        ),
-        joint: head,
-    });
+    // The nose is no thinner than a fingertip: the thinnest part sets the meshing grid.
+    let nose_radius = (0.5 * arm_girth).max(0.12 * head_size);
+    let nose = Vector3::new(0.5 * head_size, 0.0, -0.15 * head_size);
+    parts.push(on_head(face, nose, 0.35 * head_size, nose_radius));
     let chin = skull_bottom + Vector3::new(0.4 * head_size, 0.0, -0.6 * head_size);
-    parts.push(Part {
-        shape: RoundCone::new(
-            chin,
-            chin + Vector3::new(0.45 * head_size, 0.0, -0.1 * head_size),
-            0.45 * head_size,
-            0.3 * head_size,
-        ),
-        joint: head,
-    });
+    let jaw = Vector3::new(0.45 * head_size, 0.0, -0.1 * head_size);
+    parts.push(on_head(chin, jaw, 0.45 * head_size, 0.3 * head_size));
     // A bar across the body (along y) of half-length `half_width` and radius `radius`.
     let across = |centre: Point3<f64>, half_width: f64, radius: f64, joint| Part {
         shape: RoundCone::new(
