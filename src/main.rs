@@ -600,6 +600,18 @@ fn print_evaluation(report: &gdvae_node::evaluate::Report, summary: &RunSummary)
             r.queries
         );
     }
+    for s in &o.separability {
+        println!(
+            "  z_I separability over {:>2} frames: AUC {} (same family {}), {} of {} changes above the within-subject p99.9 (same family {} of {})",
+            s.frames,
+            fmt_opt(s.auc, 1.0, 3),
+            fmt_opt(s.auc_same_family, 1.0, 3),
+            fmt_opt(s.found_at_p999, 1.0, 2),
+            s.changes,
+            fmt_opt(s.found_at_p999_same_family, 1.0, 2),
+            s.same_family_changes
+        );
+    }
     let states: u64 = summary.snapshot.streams.values().map(|c| c.published).sum();
     println!(
         "  replay: {states} states in {:.1} s ({:.1} frames/s)",

@@ -221,3 +221,94 @@ pub fn angle_steps(angles_rad: &[f64]) -> AngleErrors {
     let steps: Vec<f64> = angles_rad.windows(2).map(|w| w[1] - w[0]).collect();
     angle_errors(&steps)
 }
+
+/// How far apart two subjects' z_I are, against how far one subject's z_I wanders, over windows
+/// of `frames` frames: what bounds any identity-change detector that sees the encoder's z_I, and
+/// so tells the encoder's share of a tracker's misses and false changes from the tracker's own.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Separability {
+    pub frames: usize,
+    /// True changes with `frames` frames on both sides (consecutive segments of one recording).
+    pub changes: usize,
+    pub same_family_changes: usize,
+    /// Windows within one subject (every position with `frames` frames on both sides).
+    pub within_windows: usize,
+    /// Distance between the fused z_I of the windows before and after a position, within one subject.
+    pub within_median: Option<f64>,
+    pub within_p99: Option<f64>,
+    pub within_p999: Option<f64>,
+    /// The same across a true change.
+    pub between_median: Option<f64>,
+    pub between_same_family_median: Option<f64>,
+    /// P(a change's distance > a within-subject window's): 1 separates, 0.5 is chance.
+    pub auc: Option<f64>,
+    pub auc_same_family: Option<f64>,
+    /// Share of changes whose distance exceeds the within-subject 99.9th percentile: what a
+    /// threshold on this distance would find with about one false window per 1,000.
+    pub found_at_p999: Option<f64>,
+    pub found_at_p999_same_family: Option<f64>,
+}
+
+/// The identity separability of `segments` (in recording order) over windows of `frames` frames.
+/// A window's z_I is the fusion of its frames; distances are Euclidean, as in [`retrieval`].
+pub fn separability(segments: &[Segment], frames: usize) -> Separability {
+    let w = frames.max(1);
+    let distance = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>().sqrt();
+    let pair = |before: &[(Vec<f32>, Vec<f32>)], after: &[(Vec<f32>, Vec<f32>)]| {
+        Some(distance(&fuse(before)?, &fuse(after)?))
+    };
+    let mut within = Vec::new();
+    for segment in segments {
+        for t in w..=segment.frames.len().saturating_sub(w) {
+            within.extend(pair(&segment.frames[t - w..t], &segment.frames[t..t + w]));
+        }
+    }
+    let (mut between, mut between_same) = (Vec::new(), Vec::new());
+    for s in segments.windows(2) {
+        let (a, b) = (&s[0], &s[1]);
+        if a.recording != b.recording || a.frames.len() < w || b.frames.len() < w {
+            continue;
+        }
+        if let Some(d) = pair(&a.frames[a.frames.len() - w..], &b.frames[..w]) {
+            between.push(d);
+            if a.family == b.family {
+                between_same.push(d);
+            }
+        }
+    }
+    let within = sorted(within);
+    let p999 = quantile(&within, 0.999);
+    let auc = |changes: &[f64]| {
+        if changes.is_empty() || within.is_empty() {
+            return None;
+        }
+        let wins: f64 = changes
+            .iter()
+            .map(|d| {
+                let below = within.partition_point(|x| x < d) as f64;
+                let ties = within.partition_point(|x| x <= d) as f64 - below;
+                below + 0.5 * ties
+            })
+            .sum();
+        Some(wins / (changes.len() * within.len()) as f64)
+    };
+    let found = |changes: &[f64]| {
+        let limit = p999?;
+        (!changes.is_empty()).then(|| changes.iter().filter(|d| **d > limit).count() as f64 / changes.len() as f64)
+    };
+    Separability {
+        frames: w,
+        changes: between.len(),
+        same_family_changes: between_same.len(),
+        within_windows: within.len(),
+        within_median: quantile(&within, 0.5),
+        within_p99: quantile(&within, 0.99),
+        within_p999: p999,
+        between_median: quantile(&sorted(between.iter().copied()), 0.5),
+        between_same_family_median: quantile(&sorted(between_same.iter().copied()), 0.5),
+        auc: auc(&between),
+        auc_same_family: auc(&between_same),
+        found_at_p999: found(&between),
+        found_at_p999_same_family: found(&between_same),
+    }
+}

@@ -4,7 +4,8 @@
 //! settings, every frame), matches each published state to the recording's `/sim/ground_truth`
 //! message by sensor stamp, and reports per recording and overall: heading error of the raw and
 //! filtered yaw, position error of `centre_m`, identity changes found against the true ones, and
-//! identity retrieval from the fused z_I. A recording without ground truth gets what can be said
+//! identity retrieval from the fused z_I, and the separability of z_I alone (within one subject
+//! against across a change), which bounds what any change detector can do with this encoder. A recording without ground truth gets what can be said
 //! without it (identity changes reported, heading smoothness).
 //!
 //! Convention (no offset is fitted): the estimated heading is the yaw about +z of R(q), the
@@ -23,7 +24,7 @@ use serde::Serialize;
 
 use crate::config::SourceSettings;
 use crate::state::{Output, State};
-use metrics::{AngleErrors, Changes, Distances, Retrieval, Segment};
+use metrics::{AngleErrors, Changes, Distances, Retrieval, Segment, Separability};
 use truth::TruthFrame;
 
 pub const CONVENTION: &str =
@@ -37,6 +38,8 @@ pub struct EvaluateOptions {
     pub tolerance_frames: usize,
     /// Identity retrieval after these numbers of frames.
     pub retrieval_frames: Vec<usize>,
+    /// Identity separability of the encoder's z_I over windows of these numbers of frames.
+    pub separability_frames: Vec<usize>,
     /// Take each source's sensor pose from the recording's ground truth (`world_from_camera`).
     pub pose_from_truth: bool,
 }
@@ -46,6 +49,7 @@ impl Default for EvaluateOptions {
         Self {
             tolerance_frames: 10,
             retrieval_frames: vec![1, 5, 30],
+            separability_frames: vec![1, 10],
             pose_from_truth: true,
         }
     }
@@ -155,6 +159,8 @@ pub struct Overall {
     pub position: Distances,
     pub changes: Changes,
     pub retrieval: Vec<Retrieval>,
+    /// How well the encoder's z_I alone tells subjects apart: the bound on change detection.
+    pub separability: Vec<Separability>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -230,6 +236,11 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
             .retrieval_frames
             .iter()
             .map(|n| metrics::retrieval(&segments, *n))
+            .collect(),
+        separability: options
+            .separability_frames
+            .iter()
+            .map(|n| metrics::separability(&segments, *n))
             .collect(),
     };
     Report {

@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use gdvae_node::evaluate::metrics::{angle_errors, match_changes, retrieval, Segment};
+use gdvae_node::evaluate::metrics::{angle_errors, match_changes, retrieval, separability, Segment};
 
 use crate::helpers::repo;
 
@@ -72,6 +72,43 @@ fn retrieval_counts_a_query_right_when_its_own_reference_is_nearest() {
     // Two frames after the half would need 4 frames each: none of these segments takes part.
     assert_eq!(retrieval(&segments, 3).queries, 0);
     assert_eq!(retrieval(&segments, 3).top1, None);
+}
+
+#[test]
+fn separability_compares_distances_across_changes_with_distances_within_a_subject() {
+    let segment = |recording: &str, subject: &str, family: &str, values: &[f32]| Segment {
+        recording: recording.into(),
+        subject: subject.into(),
+        family: family.into(),
+        frames: values.iter().map(|v| (vec![*v], vec![0.1])).collect(),
+    };
+    let segments = vec![
+        segment("r", "a", "quadruped", &[0.0, 0.0, 0.2, 0.2]),
+        segment("r", "b", "quadruped", &[1.0, 1.0, 1.0]),
+        // A new recording: b -> c is not a change. c -> d is one that z_I cannot see.
+        segment("s", "c", "biped", &[3.0, 3.0]),
+        segment("s", "d", "biped", &[3.0, 3.0]),
+    ];
+    // z_I is f32: figures agree to its precision.
+    let close = |x: Option<f64>, y: f64| (x.unwrap() - y).abs() < 1e-6;
+    // One frame: within-subject steps 0, 0.2, 0 (a), 0, 0 (b), 0 (c), 0 (d); across a -> b 0.8,
+    // across c -> d 0.
+    let s = separability(&segments, 1);
+    assert_eq!((s.changes, s.same_family_changes, s.within_windows), (2, 2, 7));
+    // 0.8 beats all 7; 0 ties 6 and loses to 1: (7 + 3) / 14.
+    assert!(close(s.auc, 10.0 / 14.0), "{s:?}");
+    assert!(close(s.within_p999, 0.2 * 0.994), "{s:?}");
+    assert!(close(s.found_at_p999, 0.5) && close(s.found_at_p999_same_family, 0.5), "{s:?}");
+    assert!(close(s.between_median, 0.4), "{s:?}");
+    // Two frames: only a is long enough for a within-subject window (its halves differ by 0.2);
+    // both changes have two frames on each side (0.8 and 0).
+    let s = separability(&segments, 2);
+    assert_eq!((s.changes, s.within_windows), (2, 1));
+    assert!(close(s.within_p999, 0.2) && close(s.auc, 0.5), "{s:?}");
+    assert!(close(s.found_at_p999, 0.5), "{s:?}");
+    // Too long a window: nothing to measure, no figure invented.
+    let s = separability(&segments, 5);
+    assert_eq!((s.changes, s.within_windows, s.auc, s.found_at_p999), (0, 0, None, None));
 }
 
 /// A 2 s recording, one quadruped replaced by another at 1 s: 60 frames, one true change.
