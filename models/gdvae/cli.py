@@ -34,15 +34,16 @@ def spectra_command(args) -> int:
 
 
 def apply_setting(chosen, assignment: str) -> None:
-    """`--set ae.KEY=VALUE` / `vae.KEY=VALUE`: override one recipe field (an experiment's knob),
-    converted to the field's type; unknown sections or fields are an error, not ignored."""
+    """`--set ae.KEY=VALUE` / `vae.KEY=VALUE` / `recipe.KEY=VALUE`: override one recipe field (an
+    experiment's knob), converted to the field's type; unknown sections or fields are an error, not
+    ignored."""
     import dataclasses
 
     name, separator, text = assignment.partition("=")
     section, _, field = name.partition(".")
-    target = {"ae": chosen.ae, "vae": chosen.vae}.get(section)
+    target = {"ae": chosen.ae, "vae": chosen.vae, "recipe": chosen}.get(section)
     if not separator or target is None or not field:
-        raise SystemExit(f"--set {assignment!r}: expected ae.FIELD=VALUE or vae.FIELD=VALUE")
+        raise SystemExit(f"--set {assignment!r}: expected ae.FIELD=VALUE, vae.FIELD=VALUE or recipe.FIELD=VALUE")
     fields = {f.name: f for f in dataclasses.fields(target)}
     if field not in fields:
         raise SystemExit(f"--set {assignment!r}: {section} has no field {field!r} (fields: {', '.join(fields)})")
@@ -54,6 +55,8 @@ def apply_setting(chosen, assignment: str) -> None:
             value = text.lower() == "true"
         elif isinstance(current, (int, float, str)):
             value = type(current)(text)
+        elif current is None:  # optional numbers (None: follow another field)
+            value = float(text)
         else:
             raise ValueError(f"{type(current).__name__} fields cannot be set from the command line")
     except ValueError as error:
@@ -87,7 +90,10 @@ def train_command(args) -> int:
     log.info("%s: %d meshes (%d train), scale %.4f model units per input unit", args.dataset, len(dataset.meshes),
              len(dataset.indices("train")), dataset.scale)
     spectra = dataset_spectra(dataset, chosen.spectrum_count, SpectrumCache(Path(args.dataset) / ".spectra"))
-    train(dataset, spectra, args.out, chosen, stop_after=args.stop_after, init_from=args.init_from)
+    if args.rebuild_bank and not args.init_from:
+        raise SystemExit("--rebuild-bank goes with --init-from (a fresh run builds its own bank)")
+    train(dataset, spectra, args.out, chosen, stop_after=args.stop_after, init_from=args.init_from,
+          rebuild_bank=args.rebuild_bank)
     log.info("training finished: %s", args.out)
     return 0
 
@@ -223,6 +229,9 @@ def main(argv=None) -> int:
     training.add_argument("--stop-after", choices=["ae", "bank"],
                           help="stop after this stage (bank: the AE and its code bank, for VAEs that --init-from this run)")
     training.add_argument("--init-from", help="reuse another run's trained AE and code bank (compare VAE regimes)")
+    training.add_argument("--rebuild-bank", action="store_true",
+                          help="with --init-from: reuse only the AE and encode a new code bank with this run's "
+                               "bank settings (recipe.bank_copies, recipe.bank_partial_views)")
     training.add_argument("--limit", type=int, help="use only the first N meshes")
     training.set_defaults(handler=train_command)
 

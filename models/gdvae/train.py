@@ -44,6 +44,10 @@ class Recipe:
     # every training operation of the supervised model; False: with E_r's prediction (what this kit
     # did before; a copy whose heading E_r got wrong becomes variance the VAE cannot explain).
     bank_true_rotation: bool = True
+    # Fraction of code-bank copies that are camera-like partial views, each paired with the whole
+    # mesh's spectrum, so that L_S teaches z_I to name the whole shape from any side (what the node
+    # sees). None: the AE's `partial_views`.
+    bank_partial_views: float | None = None
     vae_iterations: int = 40000
     vae_batch: int = 264
     vae_learning_rate: float = 1e-4
@@ -221,11 +225,12 @@ class Plateau:
 
 
 def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen: Recipe,
-          stop_after: str | None = None, init_from: str | Path | None = None) -> dict:
+          stop_after: str | None = None, init_from: str | Path | None = None, rebuild_bank: bool = False) -> dict:
     """Runs (or resumes) the three stages. Returns the trained modules.
 
     `init_from`: another run whose AE and code bank this run reuses (it starts at the VAE stage),
-    so that two VAE regimes can be compared on exactly the same autoencoder.
+    so that two VAE regimes can be compared on exactly the same autoencoder. `rebuild_bank`: reuse
+    only its AE and encode a new bank with this recipe's bank settings.
     """
     if chosen.partial_views > 0 and not chosen.ae.supervised:
         raise ValueError("partial views need the supervised AE (its target is the whole canonical cloud)")
@@ -253,8 +258,12 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         source = torch.load(Path(init_from) / "checkpoint.pt", weights_only=False)
         if "bank" not in source:
             raise ValueError(f"{init_from}: its AE stage has not finished; nothing to start from")
-        state = {"stage": "vae", "iteration": 0, "ae": source["ae"], "bank": source["bank"]}
-        log.info("starting from the AE and code bank of %s", init_from)
+        if rebuild_bank:
+            state = {"stage": "bank", "iteration": 0, "ae": source["ae"]}
+            log.info("starting from the AE of %s (new code bank)", init_from)
+        else:
+            state = {"stage": "vae", "iteration": 0, "ae": source["ae"], "bank": source["bank"]}
+            log.info("starting from the AE and code bank of %s", init_from)
     else:
         state = {"stage": "ae", "iteration": 0}
     train_indices = dataset.indices("train")
@@ -330,11 +339,15 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir) -> None:
 @torch.no_grad()
 def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe) -> dict:
     """(q, x_c, lambda) for every training mesh under `bank_copies` random rotations; the
-    rotation is the true one for a supervised AE with `bank_true_rotation`, else E_r's."""
+    rotation is the true one for a supervised AE with `bank_true_rotation`, else E_r's. A share
+    `bank_partial_views` of the copies are camera-like views, with the whole mesh's spectrum."""
     ae.eval()
+    partial = chosen.partial_views if chosen.bank_partial_views is None else chosen.bank_partial_views
+    if not 0.0 <= partial <= 1.0:
+        raise ValueError(f"bank_partial_views {partial}: must be within 0..1")
     qs, codes, spectrum = [], [], []
     for index in range(len(sampler.meshes)):
-        clouds = sampler.clouds(index, chosen.bank_copies)
+        clouds = sampler.views(np.full(chosen.bank_copies, index), 1, partial)
         rotations = random_rotation_matrices(len(clouds), full=chosen.ae.full_rotations)
         inputs = rotate(clouds, rotations)
         if chosen.bank_true_rotation and ae.config.supervised:
@@ -346,7 +359,8 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe) 
         qs.append(q)
         codes.append(x_c)
         spectrum.append(torch.from_numpy(np.repeat(spectra[index][None], len(clouds), 0)).float())
-    log.info("bank: %d training meshes x %d rotations encoded", len(sampler.meshes), chosen.bank_copies)
+    log.info("bank: %d training meshes x %d rotations encoded (%.0f%% partial views)", len(sampler.meshes),
+             chosen.bank_copies, 100 * partial)
     return {"q": torch.cat(qs), "x_c": torch.cat(codes), "spectrum": torch.cat(spectrum)}
 
 

@@ -64,7 +64,10 @@ def test_recipe_overrides_are_typed_and_unknown_fields_refused():
     apply_setting(chosen, "vae.reconstruction_per_dimension=false")
     apply_setting(chosen, "ae.copies=2")
     assert (chosen.vae.omega_jacobian, chosen.vae.reconstruction_per_dimension, chosen.ae.copies) == (2000.0, False, 2)
-    for bad in ("vae.omega_jacobain=1", "vea.omega_jacobian=1", "vae.omega_jacobian", "ae.copies=two",
+    apply_setting(chosen, "recipe.bank_copies=3")
+    apply_setting(chosen, "recipe.bank_partial_views=0.5")  # None by default: an optional number
+    assert (chosen.bank_copies, chosen.bank_partial_views) == (3, 0.5)
+    for bad in ("vae.omega_jacobain=1", "vea.omega_jacobian=1", "recipe.bank_copies=many", "vae.omega_jacobian", "ae.copies=two",
                 "vae.reconstruction_per_dimension=maybe", "ae.rotation_hidden=1"):
         with pytest.raises(SystemExit):
             apply_setting(chosen, bad)
@@ -169,6 +172,15 @@ def test_screen_trains_one_vae_per_cell_on_the_same_bank_and_tabulates_them(tiny
         assert recipe["vae_iterations"] == 2 and recipe["vae"]["beta_inter_tc"] == 8.0
         assert cell["z_E_active"] >= 0 and set(cell["S_by_family"]) == {"blobA", "blobB"}
     assert set(result["main_effects"]) == {"C", "J"}
+    # A VAE on the same AE with a new bank of partial views (3 copies per mesh, not the source's 2).
+    rebuilt = tmp_path / "rebuilt"
+    assert main(["train", str(tiny_dataset), "--out", str(rebuilt), "--recipe", "smoke", "--init-from", str(ae_run),
+                 "--rebuild-bank", "--set", "recipe.bank_copies=3", "--set", "recipe.bank_partial_views=1"]) == 0
+    rebuilt_state = __import__("torch").load(rebuilt / "checkpoint.pt", weights_only=False)
+    assert rebuilt_state["bank"]["x_c"].shape[0] == 3 / 2 * state["bank"]["x_c"].shape[0]
+    assert rebuilt_state["stage"] == "done"
+    with pytest.raises(SystemExit, match="--rebuild-bank goes with --init-from"):
+        main(["train", str(tiny_dataset), "--out", str(tmp_path / "r2"), "--recipe", "smoke", "--rebuild-bank"])
     assert "| C | J |" in (screen_dir / "screen.md").read_text()
     refused = main(["screen", str(ae_run), str(tiny_dataset), "--out", str(screen_dir), "--factors", "X"])
     assert refused != 0

@@ -328,8 +328,8 @@ def test_the_code_bank_of_a_supervised_model_uses_the_true_rotation(true_rotatio
     class Sampler:
         meshes = [None]
 
-        def clouds(self, index, copies):
-            return cloud[:copies]
+        def views(self, chosen, copies, partial):
+            return cloud[:len(chosen) * copies]
 
     torch.manual_seed(7)
     bank = encode_bank(ae, Sampler(), np.ones((1, 6)), chosen)
@@ -343,3 +343,29 @@ def test_the_code_bank_of_a_supervised_model_uses_the_true_rotation(true_rotatio
     with torch.no_grad():
         expected_x, _ = ae.encode_shape(rotate(cloud, rotations), quaternion_to_matrix(expected_q))
     assert torch.allclose(bank["x_c"], expected_x, atol=1e-5)
+
+
+def test_the_code_bank_shows_partial_views_in_the_chosen_share():
+    from dataclasses import replace
+    from gdvae.train import encode_bank, recipe
+    chosen = recipe("smoke")
+    ae = Autoencoder(chosen.ae)
+    asked = []
+
+    class Sampler:
+        meshes = [None, None]
+
+        def views(self, chosen_meshes, copies, partial):
+            asked.append((list(chosen_meshes), copies, partial))
+            return torch.randn(len(chosen_meshes) * copies, chosen.ae.points, 3)
+
+    spectra = np.ones((2, 6))
+    # None follows the AE's partial views; an explicit share overrides it.
+    for partial_views, bank_partial, expected in ((0.75, None, 0.75), (0.75, 0.0, 0.0), (0.0, 1.0, 1.0)):
+        asked.clear()
+        bank = encode_bank(ae, Sampler(), spectra, replace(chosen, partial_views=partial_views,
+                                                           bank_partial_views=bank_partial))
+        assert asked == [([0] * chosen.bank_copies, 1, expected), ([1] * chosen.bank_copies, 1, expected)]
+        assert bank["x_c"].shape[0] == 2 * chosen.bank_copies and torch.equal(bank["spectrum"], torch.ones(4, 6))
+    with pytest.raises(ValueError, match="bank_partial_views"):
+        encode_bank(ae, Sampler(), spectra, replace(chosen, bank_partial_views=1.5))
