@@ -23,7 +23,25 @@ pub struct Manifest {
     pub units: Units,
     pub files: BTreeMap<String, FileEntry>,
     #[serde(default)]
+    pub calibration: Calibration,
+    #[serde(default)]
     pub metrics: serde_json::Value,
+}
+
+/// What the kit measured of the encoder's own uncertainty at export (absent: as reported).
+#[derive(Debug, Clone, Copy, Deserialize, serde::Serialize)]
+pub struct Calibration {
+    /// How far one subject's z_I spreads over its poses and camera views, against the variance the
+    /// encoder reports (median over dimensions of their ratio). The tracker multiplies the
+    /// encoder's z_I variances by it, then by `[track] shape_variance_scale`.
+    #[serde(rename = "z_I_variance_scale")]
+    pub z_i_variance_scale: f32,
+}
+
+impl Default for Calibration {
+    fn default() -> Self {
+        Self { z_i_variance_scale: 1.0 }
+    }
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -129,6 +147,10 @@ impl Bundle {
             if value == 0 || value > 1 << 20 {
                 return Err(self.unsupported(format!("size {name} = {value} is out of range")));
             }
+        }
+        let scale = m.calibration.z_i_variance_scale;
+        if !(scale.is_finite() && scale > 0.0) {
+            return Err(self.unsupported(format!("calibration z_I_variance_scale = {scale} must be positive")));
         }
         let u = &m.units;
         if u.input_unit != "metre" {

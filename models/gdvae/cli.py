@@ -181,9 +181,24 @@ def export_command(args) -> int:
         raise ValueError(f"{args.run} has no dataset.json: pass --dataset (the training dataset) for its scale")
     metrics = json.loads(Path(args.metrics).read_text()) if args.metrics else None
     training = {**summary, "ae_iterations": chosen.ae_iterations, "vae_iterations": chosen.vae_iterations,
-                "ae_batch": chosen.ae_batch, "vae_batch": chosen.vae_batch, "partial_views": chosen.partial_views}
+                "ae_batch": chosen.ae_batch, "vae_batch": chosen.vae_batch, "partial_views": chosen.partial_views,
+                "bank_partial_views": chosen.partial_views if chosen.bank_partial_views is None
+                else chosen.bank_partial_views}
+    calibration = None
+    if args.calibrate:
+        from .data import load_dataset
+        from .evaluate import z_i_variance_calibration
+
+        dataset = load_dataset(args.calibrate)
+        held_out = dataset.indices("test")
+        if not held_out:
+            raise ValueError(f"{args.calibrate}: no held-out meshes to calibrate on (check splits.json)")
+        calibration = z_i_variance_calibration(ae, vae, dataset, held_out, full_rotations=chosen.ae.full_rotations)
+        log.info("z_I variance calibration: x %.4g (per-dimension ratios p10 %.3g, p90 %.3g; %d subjects)",
+                 calibration["z_I_variance_scale"], calibration["ratio_p10"], calibration["ratio_p90"],
+                 calibration["groups"])
     write_bundle(ae, vae, args.out, scale=summary["scale"], recipe_name=chosen.name, training=training,
-                 metrics=metrics)
+                 metrics=metrics, calibration=calibration)
     print(f"bundle written to {args.out}")
     return 0
 
@@ -272,6 +287,9 @@ def main(argv=None) -> int:
     export.add_argument("--out", required=True, help="bundle folder")
     export.add_argument("--metrics", help="metrics JSON from `evaluate`, recorded in the manifest")
     export.add_argument("--dataset", help="training dataset, if the run has no dataset.json")
+    export.add_argument("--calibrate", metavar="DATASET",
+                        help="measure z_I's variance calibration on DATASET's held-out subjects (the node's "
+                             "tracker scales the encoder's variances by it); without it the bundle has none (1)")
     export.set_defaults(handler=export_command)
 
     args = parser.parse_args(argv)

@@ -11,7 +11,8 @@ import torch
 
 from .data import MeshDataset
 from .geometry import chamfer, quaternion_to_matrix, random_rotation_matrices, rotate
-from .metrics import clustering_consistency, coverage_and_fidelity, disentanglement, heading_errors
+from .metrics import (clustering_consistency, coverage_and_fidelity, disentanglement, heading_errors,
+                      variance_calibration)
 from .train import PointSampler
 
 log = logging.getLogger(__name__)
@@ -240,6 +241,23 @@ def rotation_diagnostics(ae, dataset: MeshDataset, indices: list[int], clouds: t
 
 
 @torch.no_grad()
+@torch.no_grad()
+def z_i_variance_calibration(ae, vae, dataset: MeshDataset, indices: list[int], seed: int = 0,
+                             full_rotations: bool = False) -> dict:
+    """What the node's tracker needs of z_I's variances: how far one subject's z_I spreads over its
+    poses, each seen from one camera-like view in a random rotation, against the variance the
+    encoder reports (`variance_calibration`). Written into the bundle by `export --calibrate`."""
+    if not dataset.has_ground_truth:
+        raise ValueError(f"{dataset.root}: no ground truth (subjects) to calibrate against")
+    torch.manual_seed(seed)  # the rotations: the same bundle gets the same calibration
+    sampler = PointSampler(dataset, indices, ae.config.points, seed)
+    views = sampler.views(np.arange(len(indices)), 1, 1.0)
+    codes = encode_all(ae, vae, views, random_rotation_matrices(len(views), full=full_rotations), None)
+    subjects = [dataset.items[i].subject for i in indices]
+    return {**variance_calibration(codes["mu_I"].numpy(), codes["lv_I"].numpy(), subjects),
+            "measured_on": f"{dataset.root}, {len(indices)} held-out meshes, one camera-like view each"}
+
+
 def partial_view_metrics(ae, vae, dataset: MeshDataset, indices: list[int], clouds: torch.Tensor,
                          rng: np.random.Generator, seed: int, count: int, full_rotations: bool) -> dict:
     """What the node sees: the side of each mesh facing a camera above the ground, `count` view

@@ -131,7 +131,7 @@ def parity(ae, vae, folder: Path) -> float:
 
 
 def write_bundle(ae, vae, folder: str | Path, *, scale: float, recipe_name: str, training: dict,
-                 metrics: dict | None) -> dict:
+                 metrics: dict | None, calibration: dict | None = None) -> dict:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     export_onnx(ae, vae, folder)
@@ -171,6 +171,7 @@ def write_bundle(ae, vae, folder: str | Path, *, scale: float, recipe_name: str,
             "flow.onnx": {"inputs": {"spectrum": ["batch", c.spectrum]}, "outputs": FLOW_OUTPUTS},
         },
         "onnx_parity_max_diff": worst,
+        **({"calibration": calibration} if calibration else {}),
         "training": training,
         "metrics": metrics or {},
     }
@@ -223,6 +224,15 @@ def model_card(manifest: dict) -> str:
         lines.append(f"- command: `{metrics.get('command', 'python -m gdvae evaluate')}`")
     else:
         lines.append("- not evaluated")
+    calibration = manifest.get("calibration")
+    lines += ["", "## Calibration"]
+    if calibration:
+        lines.append(f"- z_I variances x {calibration['z_I_variance_scale']:.4g}: one subject's z_I spreads over its poses "
+                     f"and views by this times the variance the encoder reports (median over dimensions; p10 "
+                     f"{calibration['ratio_p10']:.3g}, p90 {calibration['ratio_p90']:.3g}); measured on "
+                     f"{calibration['measured_on']}. The node's tracker applies it.")
+    else:
+        lines.append("- none: the node takes the encoder's z_I variances as reported (`export --calibrate`).")
     lines += [
         "",
         "## Limits",

@@ -136,3 +136,17 @@ def coverage_and_fidelity(generated: torch.Tensor, real: torch.Tensor) -> tuple[
 def heading_errors(predicted_q: torch.Tensor, true_rotation: torch.Tensor) -> np.ndarray:
     """Angles (degrees) between predicted and true rotations."""
     return (geodesic_distance(quaternion_to_matrix(predicted_q), true_rotation) * 180.0).numpy()
+
+
+def variance_calibration(means: np.ndarray, log_variances: np.ndarray, groups) -> dict:
+    """How far codes of one group (a subject) spread, against the variance the encoder reports for
+    them: per dimension, the mean within-group variance of the means over the mean reported
+    variance. `z_I_variance_scale` is the median over dimensions: 1 when the encoder's variances
+    are right, < 1 when they are wider than the spread."""
+    groups = np.asarray(groups)
+    spread = [means[groups == g].var(0) for g in np.unique(groups) if (groups == g).sum() >= 2]
+    if not spread:
+        raise ValueError("variance calibration needs a group with two or more codes")
+    ratio = np.mean(spread, 0) / np.exp(log_variances).mean(0)
+    return {"z_I_variance_scale": float(np.median(ratio)), "ratio_p10": float(np.quantile(ratio, 0.1)),
+            "ratio_p90": float(np.quantile(ratio, 0.9)), "groups": len(spread), "codes": int(len(means))}

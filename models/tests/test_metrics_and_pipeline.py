@@ -113,6 +113,12 @@ def test_smoke_training_evaluation_and_export(tiny_dataset, tmp_path):
         assert hashlib.sha256((bundle / name).read_bytes()).hexdigest() == entry["sha256"]
     assert manifest["sizes"]["points"] == 128 and manifest["metrics"]["C_X"] == measured["C_X"]
     assert (bundle / "MODEL_CARD.md").read_text().startswith("# GDVAE++ bundle")
+    assert "calibration" not in manifest, "uncalibrated unless asked"
+    calibrated = tmp_path / "calibrated"
+    assert main(["export", str(run), "--out", str(calibrated), "--calibrate", str(tiny_dataset)]) == 0
+    calibration = json.loads((calibrated / "manifest.json").read_text())["calibration"]
+    assert calibration["z_I_variance_scale"] > 0 and calibration["groups"] >= 1
+    assert "z_I variances x" in (calibrated / "MODEL_CARD.md").read_text()
 
     import onnxruntime as ort
 
@@ -184,3 +190,19 @@ def test_screen_trains_one_vae_per_cell_on_the_same_bank_and_tabulates_them(tiny
     assert "| C | J |" in (screen_dir / "screen.md").read_text()
     refused = main(["screen", str(ae_run), str(tiny_dataset), "--out", str(screen_dir), "--factors", "X"])
     assert refused != 0
+
+
+def test_variance_calibration_is_the_within_subject_spread_over_the_reported_variance():
+    from gdvae.metrics import variance_calibration
+
+    rng = np.random.default_rng(0)
+    subjects = np.repeat(np.arange(40), 50)
+    centres = rng.normal(0.0, 3.0, size=(40, 6))
+    means = centres[subjects] + rng.normal(0.0, 0.1, size=(len(subjects), 6))  # within-subject variance 0.01
+    reported = np.full((len(subjects), 6), np.log(0.04))  # the encoder says 0.04: 4 times too wide
+    measured = variance_calibration(means, reported, subjects)
+    assert abs(measured["z_I_variance_scale"] - 0.25) < 0.02, measured
+    assert measured["groups"] == 40 and measured["codes"] == 2000
+    # Subjects seen once say nothing about the spread.
+    with pytest.raises(ValueError, match="two or more"):
+        variance_calibration(means[:3], reported[:3], [0, 1, 2])

@@ -250,7 +250,15 @@ pub fn run(
     }
     drop((batch_rx, done_tx));
     {
-        let (config, stats) = (config.clone(), stats.clone());
+        let (mut config, stats) = (config.clone(), stats.clone());
+        // The bundle's calibration of its z_I variances, then the config's multiplier.
+        let calibration = bundle.manifest.calibration.z_i_variance_scale;
+        config.track.shape_variance_scale *= calibration;
+        log::info!(
+            "track: z_I variances x {calibration} (bundle calibration) x {} (config) = x {}",
+            config.track.shape_variance_scale / calibration,
+            config.track.shape_variance_scale
+        );
         threads.push(spawn(
             "track".into(),
             Box::new(move || track(done_rx, publish_tx, &config, &stats)),

@@ -80,9 +80,54 @@ fn altered_or_unsupported_bundles_are_refused_with_the_reason() {
         let error = Bundle::load(dir.path()).unwrap_err().to_string();
         assert!(error.contains(expected), "{error} lacks '{expected}'");
     }
+    let mut calibrated: serde_json::Value = serde_json::from_str(&manifest).unwrap();
+    for bad in [serde_json::json!(0.0), serde_json::json!(-1.0)] {
+        calibrated["calibration"] = serde_json::json!({ "z_I_variance_scale": bad });
+        std::fs::write(dir.path().join("manifest.json"), calibrated.to_string()).unwrap();
+        let error = Bundle::load(dir.path()).unwrap_err().to_string();
+        assert!(error.contains("z_I_variance_scale"), "{error}");
+    }
     std::fs::write(dir.path().join("manifest.json"), "{ not json").unwrap();
     assert!(Bundle::load(dir.path())
         .unwrap_err()
         .to_string()
         .contains("not a valid manifest"));
+}
+
+/// Replays the sample with `bundle` and `settings`; its identity changes reported.
+fn changes_reported(bundle: &std::path::Path, settings: &[&str]) -> u64 {
+    let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"));
+    command
+        .current_dir(crate::helpers::repo())
+        .args(["-q", "evaluate", "--config", "config/replay.toml", "--out", "-", "--bundle"])
+        .arg(bundle)
+        .arg(crate::helpers::sample_recording());
+    for setting in settings {
+        command.args(["--set", setting]);
+    }
+    let output = command.output().unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    report["recordings"][0]["changes_reported"].as_u64().unwrap()
+}
+
+#[test]
+fn the_bundles_calibration_scales_the_z_i_variances_before_the_configs_multiplier() {
+    let dir = tempfile::tempdir().unwrap();
+    for file in ["manifest.json", "encoder.onnx", "decoder.onnx", "flow.onnx"] {
+        std::fs::copy(shipped().join(file), dir.path().join(file)).unwrap();
+    }
+    let shipped_changes = changes_reported(dir.path(), &[]);
+    assert_eq!(shipped_changes, 1, "the sample's one swap");
+    let mut manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(shipped().join("manifest.json")).unwrap()).unwrap();
+    let measured = Bundle::load(shipped()).unwrap().manifest.calibration.z_i_variance_scale as f64;
+    // Variances a million times wider: no frame stands out.
+    manifest["calibration"] = serde_json::json!({ "z_I_variance_scale": measured * 1e6 });
+    std::fs::write(dir.path().join("manifest.json"), manifest.to_string()).unwrap();
+    assert_eq!(changes_reported(dir.path(), &[]), 0);
+    // The same product from the config's multiplier: the shipped behaviour again.
+    let default = gdvae_node::config::Config::default().track.shape_variance_scale as f64;
+    let setting = format!("shape_variance_scale={:e}", default * 1e-6);
+    assert_eq!(changes_reported(dir.path(), &[&setting]), shipped_changes);
 }
