@@ -60,8 +60,8 @@ pub struct TrackSettings {
     /// Floor on each fused z_I variance, so the filter never becomes certain beyond what
     /// correlated frames justify (and follows slow drift).
     pub min_shape_variance: f32,
-    /// The bundle's z_I variance calibration: the encoder's variances are multiplied by this
-    /// (1: as reported; > 1 when they are narrower than the frames' spread about the fused mean).
+    /// Multiplier on the encoder's z_I variances after the bundle's own calibration (manifest
+    /// `calibration`): the sensor's share (frame-to-frame jitter the kit's views do not have).
     pub shape_variance_scale: f32,
     pub change_detector: ChangeDetector,
     /// CUSUM drift allowance k: distances below it count as agreement.
@@ -101,7 +101,7 @@ impl Default for TrackSettings {
             shape_gate: 2.0,
             switch_frames: 5,
             min_shape_variance: 4e-4,
-            shape_variance_scale: 1.0,
+            shape_variance_scale: 2.2,
             change_detector: ChangeDetector::Cusum,
             cusum_drift: 2.0,
             cusum_threshold: 10.0,
