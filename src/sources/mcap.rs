@@ -67,8 +67,11 @@ pub fn scan(bytes: &[u8]) -> Result<Scan, String> {
             // A chunk cut short (a plausible length, a sound header) still holds whole messages:
             // the streaming reader decompresses what is there and stops at the end of the bytes.
             // A length beyond any chunk's is corruption, not a cut.
-            if opcode == OP_CHUNK && length <= MAX_CHUNK_BYTES && check_chunk_header(&rest[9..]).is_ok() {
-                scan.sound_bytes = bytes.len();
+            if opcode == OP_CHUNK && length <= MAX_CHUNK_BYTES {
+                match check_cut_chunk(&rest[9..]) {
+                    Ok(()) => scan.sound_bytes = bytes.len(),
+                    Err(reason) => scan.damage = Some(format!("the chunk at byte {offset}: {reason}")),
+                }
             }
             break;
         }
@@ -166,22 +169,46 @@ fn check_chunk(content: &[u8]) -> Result<(), String> {
                 "uncompressed, its records are {records} bytes but it claims {uncompressed}"
             ));
         }
-        // Uncompressed records can be checked here: each must end within the chunk.
-        let inner = &content[at..at + records as usize];
-        let mut offset = 0usize;
-        while offset < inner.len() {
-            let header = inner
-                .get(offset..offset + 9)
-                .ok_or("a record header inside it is cut short")?;
-            let length = u64::from_le_bytes(header[1..9].try_into().expect("8 bytes"));
-            if length > (inner.len() - offset - 9) as u64 {
-                return Err(format!(
-                    "a record inside it claims {length} bytes; {} remain in the chunk",
-                    inner.len() - offset - 9
-                ));
-            }
-            offset += 9 + length as usize;
+        check_inner_records(&content[at..at + records as usize], records)?;
+    }
+    Ok(())
+}
+
+/// A chunk cut short by the end of the file: a sound header, and for an uncompressed one, every
+/// inner record that starts in the bytes there are must end within the records length the header
+/// claims (the reader stops at the end of the bytes, not at a record that overruns its chunk).
+fn check_cut_chunk(content: &[u8]) -> Result<(), String> {
+    let (uncompressed, compression, records, at) = check_chunk_header(content)?;
+    if compression.is_empty() {
+        if uncompressed != records {
+            return Err(format!(
+                "uncompressed, its records are {records} bytes but it claims {uncompressed}"
+            ));
         }
+        let available = content.len().saturating_sub(at).min(records as usize);
+        check_inner_records(&content[at..at + available], records)?;
+    }
+    Ok(())
+}
+
+/// Walks the records of an uncompressed chunk: `inner` is what there is of them, `claimed` the
+/// records length of the chunk's header. Each record's header and content must end within
+/// `claimed`; a record cut by the end of `inner` (and so of the file) is left to the reader.
+fn check_inner_records(inner: &[u8], claimed: u64) -> Result<(), String> {
+    let mut offset = 0u64;
+    while offset < inner.len() as u64 {
+        let left = claimed - offset;
+        if left < 9 {
+            return Err(format!("a record header inside it runs {} bytes past its end", 9 - left));
+        }
+        let Some(header) = inner.get(offset as usize..offset as usize + 9) else {
+            break; // cut by the end of the file
+        };
+        let length = u64::from_le_bytes(header[1..9].try_into().expect("8 bytes"));
+        if length > left - 9 {
+            return Err(format!("a record inside it claims {length} bytes; {} remain in the chunk", left - 9));
+        }
+        offset += 9 + length;
     }
     Ok(())
 }

@@ -576,3 +576,20 @@ fn an_uncompressed_chunk_whose_inner_record_runs_past_its_end_is_damage() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
+
+#[test]
+fn a_chunk_cut_short_whose_inner_record_runs_past_its_records_length_is_damage() {
+    // Found by `cargo fuzz run mcap` after 2.49 M executions: the file ends inside an uncompressed
+    // chunk (which the replay reads as far as it goes), and a record header inside it straddles
+    // the end of the records length its header claims; the mcap crate's reader subtracts the record
+    // from what is left of the chunk (an overflow panic in debug builds, a misread in release).
+    // The scan now walks a cut chunk's inner records too and keeps the replay out of it.
+    let path = repo().join("tests/fixtures/hostile/mcap_inner_record_beyond_cut_chunk.mcap");
+    let bytes = std::fs::read(&path).unwrap();
+    let scan = gdvae_node::sources::mcap::scan(&bytes).unwrap();
+    let damage = scan.damage.expect("the chunk is damage");
+    assert!(damage.contains("inside it") && damage.contains("past its end"), "{damage}");
+    assert!(scan.sound_bytes < 100, "the replay stops before the chunk at byte 45: {}", scan.sound_bytes);
+    let read: Vec<_> = gdvae_node::sources::mcap::messages(&bytes[..scan.sound_bytes]).collect();
+    assert!(read.is_empty(), "no message before the chunk");
+}
