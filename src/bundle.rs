@@ -40,7 +40,9 @@ pub struct Calibration {
 
 impl Default for Calibration {
     fn default() -> Self {
-        Self { z_i_variance_scale: 1.0 }
+        Self {
+            z_i_variance_scale: 1.0,
+        }
     }
 }
 

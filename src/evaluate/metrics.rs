@@ -254,9 +254,8 @@ pub struct Separability {
 pub fn separability(segments: &[Segment], frames: usize) -> Separability {
     let w = frames.max(1);
     let distance = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>().sqrt();
-    let pair = |before: &[(Vec<f32>, Vec<f32>)], after: &[(Vec<f32>, Vec<f32>)]| {
-        Some(distance(&fuse(before)?, &fuse(after)?))
-    };
+    let pair =
+        |before: &[(Vec<f32>, Vec<f32>)], after: &[(Vec<f32>, Vec<f32>)]| Some(distance(&fuse(before)?, &fuse(after)?));
     let mut within = Vec::new();
     for segment in segments {
         for t in w..=segment.frames.len().saturating_sub(w) {

@@ -3,10 +3,11 @@
 //! `gdvae-node evaluate REC...` replays sim recordings through the real pipeline (same stages, same
 //! settings, every frame), matches each published state to the recording's `/sim/ground_truth`
 //! message by sensor stamp, and reports per recording and overall: heading error of the raw and
-//! filtered yaw, position error of `centre_m`, identity changes found against the true ones, and
+//! filtered yaw, position error of `centre_m`, identity changes found against the true ones,
 //! identity retrieval from the fused z_I, and the separability of z_I alone (within one subject
-//! against across a change), which bounds what any change detector can do with this encoder. A recording without ground truth gets what can be said
-//! without it (identity changes reported, heading smoothness).
+//! against across a change), which bounds what any change detector can do with this encoder. A
+//! recording without ground truth gets what can be said without it (identity changes reported,
+//! heading smoothness).
 //!
 //! Convention (no offset is fitted): the estimated heading is the yaw about +z of R(q), the
 //! rotation that carries the bundle's canonical shape (forward +x, up +z, the sim's rest frame) onto

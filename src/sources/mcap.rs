@@ -199,14 +199,20 @@ fn check_inner_records(inner: &[u8], claimed: u64) -> Result<(), String> {
     while offset < inner.len() as u64 {
         let left = claimed - offset;
         if left < 9 {
-            return Err(format!("a record header inside it runs {} bytes past its end", 9 - left));
+            return Err(format!(
+                "a record header inside it runs {} bytes past its end",
+                9 - left
+            ));
         }
         let Some(header) = inner.get(offset as usize..offset as usize + 9) else {
             break; // cut by the end of the file
         };
         let length = u64::from_le_bytes(header[1..9].try_into().expect("8 bytes"));
         if length > left - 9 {
-            return Err(format!("a record inside it claims {length} bytes; {} remain in the chunk", left - 9));
+            return Err(format!(
+                "a record inside it claims {length} bytes; {} remain in the chunk",
+                left - 9
+            ));
         }
         offset += 9 + length;
     }

@@ -98,7 +98,10 @@ fn separability_compares_distances_across_changes_with_distances_within_a_subjec
     // 0.8 beats all 7; 0 ties 6 and loses to 1: (7 + 3) / 14.
     assert!(close(s.auc, 10.0 / 14.0), "{s:?}");
     assert!(close(s.within_p999, 0.2 * 0.994), "{s:?}");
-    assert!(close(s.found_at_p999, 0.5) && close(s.found_at_p999_same_family, 0.5), "{s:?}");
+    assert!(
+        close(s.found_at_p999, 0.5) && close(s.found_at_p999_same_family, 0.5),
+        "{s:?}"
+    );
     assert!(close(s.between_median, 0.4), "{s:?}");
     // Two frames: only a is long enough for a within-subject window (its halves differ by 0.2);
     // both changes have two frames on each side (0.8 and 0).
@@ -108,7 +111,10 @@ fn separability_compares_distances_across_changes_with_distances_within_a_subjec
     assert!(close(s.found_at_p999, 0.5), "{s:?}");
     // Too long a window: nothing to measure, no figure invented.
     let s = separability(&segments, 5);
-    assert_eq!((s.changes, s.within_windows, s.auc, s.found_at_p999), (0, 0, None, None));
+    assert_eq!(
+        (s.changes, s.within_windows, s.auc, s.found_at_p999),
+        (0, 0, None, None)
+    );
 }
 
 /// A 2 s recording, one quadruped replaced by another at 1 s: 60 frames, one true change.

@@ -588,8 +588,15 @@ fn a_chunk_cut_short_whose_inner_record_runs_past_its_records_length_is_damage()
     let bytes = std::fs::read(&path).unwrap();
     let scan = gdvae_node::sources::mcap::scan(&bytes).unwrap();
     let damage = scan.damage.expect("the chunk is damage");
-    assert!(damage.contains("inside it") && damage.contains("past its end"), "{damage}");
-    assert!(scan.sound_bytes < 100, "the replay stops before the chunk at byte 45: {}", scan.sound_bytes);
+    assert!(
+        damage.contains("inside it") && damage.contains("past its end"),
+        "{damage}"
+    );
+    assert!(
+        scan.sound_bytes < 100,
+        "the replay stops before the chunk at byte 45: {}",
+        scan.sound_bytes
+    );
     let read: Vec<_> = gdvae_node::sources::mcap::messages(&bytes[..scan.sound_bytes]).collect();
     assert!(read.is_empty(), "no message before the chunk");
 }

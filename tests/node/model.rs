@@ -99,7 +99,15 @@ fn changes_reported(bundle: &std::path::Path, settings: &[&str]) -> u64 {
     let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"));
     command
         .current_dir(crate::helpers::repo())
-        .args(["-q", "evaluate", "--config", "config/replay.toml", "--out", "-", "--bundle"])
+        .args([
+            "-q",
+            "evaluate",
+            "--config",
+            "config/replay.toml",
+            "--out",
+            "-",
+            "--bundle",
+        ])
         .arg(bundle)
         .arg(crate::helpers::sample_recording());
     for setting in settings {
