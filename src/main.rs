@@ -390,6 +390,10 @@ fn inspect_model(bundle: &Path, load: bool, onnxruntime: Option<&Path>) -> Resul
         "units: {} model units per metre, {} centring, up {}, rotations {}",
         m.units.model_units_per_metre, m.units.centering, m.units.up_axis, m.units.rotation_mode
     );
+    println!(
+        "calibration: z_I variances x {} (1: none measured; see models/README, bundle format)",
+        m.calibration.z_i_variance_scale
+    );
     for key in ["S", "C_X", "d_C", "heading_error_median_deg"] {
         if let Some(value) = m.metrics.get(key).and_then(|v| v.as_f64()) {
             println!("metric {key}: {value:.4}");

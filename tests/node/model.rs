@@ -139,3 +139,19 @@ fn the_bundles_calibration_scales_the_z_i_variances_before_the_configs_multiplie
     let setting = format!("shape_variance_scale={:e}", default * 1e-6);
     assert_eq!(changes_reported(dir.path(), &[&setting]), shipped_changes);
 }
+
+#[test]
+fn inspect_model_shows_the_bundles_calibration() {
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
+        .args(["inspect-model"])
+        .arg(shipped())
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let scale = Bundle::load(shipped()).unwrap().manifest.calibration.z_i_variance_scale;
+    assert!(
+        stdout.contains(&format!("calibration: z_I variances x {scale} ")),
+        "{stdout}"
+    );
+}
