@@ -600,3 +600,28 @@ fn a_chunk_cut_short_whose_inner_record_runs_past_its_records_length_is_damage()
     let read: Vec<_> = gdvae_node::sources::mcap::messages(&bytes[..scan.sound_bytes]).collect();
     assert!(read.is_empty(), "no message before the chunk");
 }
+
+#[test]
+fn a_compressed_pcd_whose_columns_are_shorter_than_its_points_is_a_clear_error() {
+    // Found by `cargo fuzz run files` after about 990,000 executions: a binary_compressed PCD of
+    // 500 points whose LZF stream declares fewer uncompressed bytes than the points need; pcd-rs
+    // 0.13 then indexed its column-major buffer out of bounds (a panic). The declared size must
+    // now be exactly the header's points.
+    let path = repo().join("tests/fixtures/hostile/pcd_compressed_short_columns.pcd");
+    let error = read_cloud(&path, &FileOptions::default()).unwrap_err().to_string();
+    assert!(
+        error.contains("uncompressed") && error.contains("pcd_compressed_short_columns.pcd"),
+        "{error}"
+    );
+    // The project's own binary_compressed fixture (written by pypcd4) still reads.
+    let written = repo().join("tests/fixtures");
+    let compressed: Vec<_> = std::fs::read_dir(&written)
+        .unwrap()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.to_string_lossy().contains("compressed") && p.extension().is_some_and(|x| x == "pcd"))
+        .collect();
+    assert!(!compressed.is_empty(), "a binary_compressed fixture exists");
+    for fixture in compressed {
+        read_cloud(&fixture, &FileOptions::default()).unwrap();
+    }
+}
