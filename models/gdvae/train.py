@@ -61,6 +61,12 @@ class Recipe:
     seed: int = 0
 
 
+    def bank_view_share(self) -> float:
+        """The share of code-bank copies that are camera views: `bank_partial_views`, or the AE's
+        `partial_views` when it is None."""
+        return self.partial_views if self.bank_partial_views is None else self.bank_partial_views
+
+
 def recipe(name: str, regime: str = "gdvae++", kind: str = "ftl") -> Recipe:
     """Named recipes. `paper`: the paper's sizes (N_p = 1600, its widths and iteration counts; a GPU
     job). `cpu`: scaled to train AE + VAE in about two hours on 2 cores. `smoke`: seconds, for tests."""
@@ -342,7 +348,7 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe) 
     rotation is the true one for a supervised AE with `bank_true_rotation`, else E_r's. A share
     `bank_partial_views` of the copies are camera-like views, with the whole mesh's spectrum."""
     ae.eval()
-    partial = chosen.partial_views if chosen.bank_partial_views is None else chosen.bank_partial_views
+    partial = chosen.bank_view_share()
     if not 0.0 <= partial <= 1.0:
         raise ValueError(f"bank_partial_views {partial}: must be within 0..1")
     qs, codes, spectrum = [], [], []

@@ -167,6 +167,11 @@ pub fn fuse(frames: &[(Vec<f32>, Vec<f32>)]) -> Option<Vec<f64>> {
     Some(weighted.iter().zip(&precision).map(|(w, p)| w / p).collect())
 }
 
+/// Squared Euclidean distance of two fused z_I means.
+fn squared_distance(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum()
+}
+
 /// Identity retrieval after `n` frames.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct Retrieval {
@@ -192,7 +197,6 @@ pub fn retrieval(segments: &[Segment], n: usize) -> Retrieval {
             Some((s, fuse(&s.frames[..half])?, fuse(&s.frames[half..half + n])?))
         })
         .collect();
-    let distance = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>();
     let (mut right, mut right_family) = (0usize, 0usize);
     for (k, (segment, _, query)) in usable.iter().enumerate() {
         let nearest = |same_family: bool| {
@@ -200,7 +204,9 @@ pub fn retrieval(segments: &[Segment], n: usize) -> Retrieval {
                 .iter()
                 .enumerate()
                 .filter(|(_, (s, _, _))| !same_family || s.family == segment.family)
-                .min_by(|(_, (_, a, _)), (_, (_, b, _))| distance(a, query).total_cmp(&distance(b, query)))
+                .min_by(|(_, (_, a, _)), (_, (_, b, _))| {
+                    squared_distance(a, query).total_cmp(&squared_distance(b, query))
+                })
                 .map(|(j, _)| j)
         };
         right += usize::from(nearest(false) == Some(k));
@@ -253,7 +259,7 @@ pub struct Separability {
 /// A window's z_I is the fusion of its frames; distances are Euclidean, as in [`retrieval`].
 pub fn separability(segments: &[Segment], frames: usize) -> Separability {
     let w = frames.max(1);
-    let distance = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>().sqrt();
+    let distance = |a: &[f64], b: &[f64]| squared_distance(a, b).sqrt();
     let pair =
         |before: &[(Vec<f32>, Vec<f32>)], after: &[(Vec<f32>, Vec<f32>)]| Some(distance(&fuse(before)?, &fuse(after)?));
     let mut within = Vec::new();
