@@ -32,12 +32,10 @@ pub fn encoder_alone(bundle: &Bundle, model: &ModelSettings, frames: usize) -> R
         .collect();
     let mut encoders = Vec::new();
     for _ in 0..model.workers {
-        encoders.push(Encoder::load(
-            bundle,
-            model.onnxruntime.as_deref(),
-            model.threads,
-            model.spin,
-        )?);
+        encoders.push(
+            Encoder::load(bundle, model.onnxruntime.as_deref(), model.threads, model.spin)?
+                .with_yaw_copies(model.yaw_copies),
+        );
     }
     // Warm up each session once, as the pipeline's first batches do.
     let clouds: Vec<&[[f32; 3]]> = batch.iter().map(Vec::as_slice).collect();

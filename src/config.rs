@@ -75,6 +75,8 @@ pub struct ModelSettings {
     pub max_batch: usize,
     /// How long the batcher waits for a batch to fill before running a smaller one.
     pub max_wait_ms: f64,
+    /// Test-time yaw copies per frame (each turned by 360°/K about +z, answers fused); 1: off.
+    pub yaw_copies: usize,
 }
 
 impl Default for ModelSettings {
@@ -87,6 +89,7 @@ impl Default for ModelSettings {
             spin: false,
             max_batch: 8,
             max_wait_ms: 2.0,
+            yaw_copies: 4,
         }
     }
 }
@@ -212,6 +215,9 @@ impl Config {
         let m = &self.model;
         if m.workers == 0 || m.threads == 0 || m.max_batch == 0 {
             return Err("model.workers, model.threads and model.max_batch must be at least 1".into());
+        }
+        if !(1..=16).contains(&m.yaw_copies) {
+            return Err(format!("model.yaw_copies = {} must be within 1..=16", m.yaw_copies));
         }
         if !(m.max_wait_ms >= 0.0 && m.max_wait_ms <= 1000.0) {
             return Err(format!("model.max_wait_ms = {} must be within 0..=1000", m.max_wait_ms));

@@ -3,7 +3,7 @@
 //!
 //! Stages (see ARCHITECTURE.md): `sources` (files, recordings, network) -> `prepare` (units,
 //! gravity frame, crop, ground, outliers, centring, scaling, subsampling to N_p) -> `runtime`
-//! (ONNX Runtime encoder of a checked `bundle`) -> `track` (shape fusion, identity changes, pose
+//! (ONNX Runtime encoder of a checked `bundle`, optionally over turned `yaw_copies`) -> `track` (shape fusion, identity changes, pose
 //! smoothing) -> `publish` (sinks: zenoh, JSON lines, ROS 2). `pipeline` joins them; `config`
 //! describes a run; `ros2` holds ROS 2's wire conventions over zenoh.
 
@@ -21,3 +21,4 @@ pub mod sources;
 pub mod state;
 pub mod stats;
 pub mod track;
+pub mod yaw_copies;

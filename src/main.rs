@@ -298,7 +298,8 @@ fn encode(args: EncodeArgs) -> Result<()> {
         config.model.onnxruntime.as_deref(),
         config.model.threads,
         config.model.spin,
-    )?;
+    )?
+    .with_yaw_copies(config.model.yaw_copies);
     let encoding = encoder.encode(&[&prepared.points])?.remove(0);
     if !encoding.is_finite() {
         bail!("{}: the encoder's output is not finite", file.display());
@@ -816,8 +817,9 @@ fn print_report(
     );
     if let Some((b, config)) = baseline {
         println!(
-            "ONNX Runtime alone (batch {}, {} worker(s) x {} thread(s)): {:.1} frames/s -> pipeline at {:.0} % of it",
+            "ONNX Runtime alone (batch {}, {} yaw copies, {} worker(s) x {} thread(s)): {:.1} frames/s -> pipeline at {:.0} % of it",
             config.model.max_batch,
+            config.model.yaw_copies,
             config.model.workers,
             config.model.threads,
             b.frames_per_second,

@@ -175,6 +175,8 @@ fn open_session(file: &Path, library: Option<&Path>, threads: usize, spin: bool)
 pub struct Encoder {
     session: Session,
     file: PathBuf,
+    /// Test-time yaw copies per frame (`crate::yaw_copies`); 1: the frame as seen only.
+    yaw_copies: usize,
 }
 
 impl Encoder {
@@ -193,15 +195,44 @@ impl Encoder {
                 });
             }
         }
-        Ok(Self { session, file })
+        Ok(Self {
+            session,
+            file,
+            yaw_copies: 1,
+        })
+    }
+
+    /// Encode every frame as `copies` turned copies fused into one answer (`crate::yaw_copies`).
+    pub fn with_yaw_copies(mut self, copies: usize) -> Self {
+        self.yaw_copies = copies.max(1);
+        self
     }
 
     pub fn file(&self) -> &Path {
         &self.file
     }
 
-    /// Encodes a batch of clouds that all have the same number of points (model units, centred).
+    /// Encodes a batch of clouds that all have the same number of points (model units, centred),
+    /// each as `yaw_copies` turned copies fused into one encoding.
     pub fn encode(&mut self, clouds: &[&[[f32; 3]]]) -> Result<Vec<Encoding>, RuntimeError> {
+        if self.yaw_copies <= 1 {
+            return self.encode_as_seen(clouds);
+        }
+        let angles = crate::yaw_copies::angles(self.yaw_copies);
+        let turned: Vec<Vec<[f32; 3]>> = clouds
+            .iter()
+            .flat_map(|cloud| angles.iter().map(|&a| crate::yaw_copies::turned(cloud, a)))
+            .collect();
+        let views: Vec<&[[f32; 3]]> = turned.iter().map(Vec::as_slice).collect();
+        let encodings = self.encode_as_seen(&views)?;
+        Ok(encodings
+            .chunks(angles.len())
+            .map(|copies| crate::yaw_copies::fuse(copies, &angles).0)
+            .collect())
+    }
+
+    /// One encoder run over the clouds exactly as given.
+    fn encode_as_seen(&mut self, clouds: &[&[[f32; 3]]]) -> Result<Vec<Encoding>, RuntimeError> {
         let batch = clouds.len();
         if batch == 0 {
             return Ok(Vec::new());

@@ -137,7 +137,8 @@ pub fn run(
     // Encoders first: a bundle or runtime problem fails before any source starts.
     let mut encoders = Vec::new();
     for _ in 0..m.workers {
-        encoders.push(Encoder::load(bundle, m.onnxruntime.as_deref(), m.threads, m.spin)?);
+        encoders
+            .push(Encoder::load(bundle, m.onnxruntime.as_deref(), m.threads, m.spin)?.with_yaw_copies(m.yaw_copies));
     }
     let preparer = Arc::new(
         Preparer::new(

@@ -110,7 +110,7 @@ impl Default for TrackSettings {
             beta: 0.5,
             nominal_rate_hz: 30.0,
             heading: HeadingMode::Tracker,
-            heading_std_deg: 25.0,
+            heading_std_deg: 12.0,
             heading_accel_std: 6.0,
             heading_from_motion: true,
             motion_window_s: 1.0,

@@ -53,6 +53,29 @@ fn the_shipped_bundle_encodes_in_onnx_runtime() {
     );
 }
 
+/// With 4 yaw copies, a frame turned by a quarter turn gives the same four copies in another
+/// order: the fused yaw turns with it and the codes stay (a sign or order slip in turning the
+/// copies' answers back breaks both).
+#[test]
+fn yaw_copies_turn_back_each_answer_so_a_quarter_turn_turns_only_the_heading() {
+    use gdvae_node::track::pose::yaw_of;
+    let bundle = Bundle::load(shipped()).unwrap();
+    let mut encoder = Encoder::load(&bundle, None, 1, false).unwrap().with_yaw_copies(4);
+    let cloud = prepared(&bundle, "quadruped_rest.ply", 0);
+    let quarter: Vec<[f32; 3]> = cloud.iter().map(|&[x, y, z]| [-y, x, z]).collect();
+    let encodings = encoder.encode(&[&cloud, &quarter]).unwrap();
+    let turn = (yaw_of(&encodings[1].q) - yaw_of(&encodings[0].q)).to_degrees();
+    let turn = (turn + 540.0).rem_euclid(360.0) - 180.0;
+    assert!(
+        (turn - 90.0).abs() < 1.0,
+        "the fused yaw turned by {turn:.2} deg, not 90"
+    );
+    for (a, b) in encodings[0].z_i_mean.iter().zip(&encodings[1].z_i_mean) {
+        assert!((a - b).abs() < 1e-3 * (1.0 + a.abs()), "z_I {a} vs {b}");
+    }
+    assert_eq!(encodings.len(), 2, "one fused encoding per frame");
+}
+
 #[test]
 fn altered_or_unsupported_bundles_are_refused_with_the_reason() {
     let dir = tempfile::tempdir().unwrap();
