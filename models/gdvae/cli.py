@@ -92,8 +92,12 @@ def train_command(args) -> int:
     spectra = dataset_spectra(dataset, chosen.spectrum_count, SpectrumCache(Path(args.dataset) / ".spectra"))
     if args.rebuild_bank and not args.init_from:
         raise SystemExit("--rebuild-bank goes with --init-from (a fresh run builds its own bank)")
+    if args.continue_ae and not args.init_from:
+        raise SystemExit("--continue-ae goes with --init-from (the AE to continue)")
+    if args.continue_ae < 0:
+        raise SystemExit(f"--continue-ae {args.continue_ae}: must be a number of iterations >= 0")
     train(dataset, spectra, args.out, chosen, stop_after=args.stop_after, init_from=args.init_from,
-          rebuild_bank=args.rebuild_bank)
+          rebuild_bank=args.rebuild_bank, continue_ae=args.continue_ae)
     log.info("training finished: %s", args.out)
     return 0
 
@@ -243,6 +247,9 @@ def main(argv=None) -> int:
     training.add_argument("--stop-after", choices=["ae", "bank"],
                           help="stop after this stage (bank: the AE and its code bank, for VAEs that --init-from this run)")
     training.add_argument("--init-from", help="reuse another run's trained AE and code bank (compare VAE regimes)")
+    training.add_argument("--continue-ae", type=int, default=0, metavar="N",
+                          help="with --init-from: train its AE N more iterations (this recipe's learning rate, "
+                               "a fresh optimizer), then build a new code bank and train the VAE")
     training.add_argument("--rebuild-bank", action="store_true",
                           help="with --init-from: reuse only the AE and encode a new code bank with this run's "
                                "bank settings (recipe.bank_copies, recipe.bank_partial_views)")

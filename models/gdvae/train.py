@@ -231,12 +231,14 @@ class Plateau:
 
 
 def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen: Recipe,
-          stop_after: str | None = None, init_from: str | Path | None = None, rebuild_bank: bool = False) -> dict:
+          stop_after: str | None = None, init_from: str | Path | None = None, rebuild_bank: bool = False,
+          continue_ae: int = 0) -> dict:
     """Runs (or resumes) the three stages. Returns the trained modules.
 
     `init_from`: another run whose AE and code bank this run reuses (it starts at the VAE stage),
     so that two VAE regimes can be compared on exactly the same autoencoder. `rebuild_bank`: reuse
-    only its AE and encode a new bank with this recipe's bank settings.
+    only its AE and encode a new bank with this recipe's bank settings. `continue_ae`: train the
+    source's AE that many more iterations first (an undertrained AE; the bank is then rebuilt).
     """
     if chosen.partial_views > 0 and not chosen.ae.supervised:
         raise ValueError("partial views need the supervised AE (its target is the whole canonical cloud)")
@@ -253,6 +255,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         chosen.ae_pretrain_iterations = source_recipe.get("ae_pretrain_iterations", chosen.ae_pretrain_iterations)
         chosen.partial_views = source_recipe.get("partial_views", 0.0)
         chosen.bank_true_rotation = source_recipe.get("bank_true_rotation", False)
+        source_iterations = chosen.ae_pretrain_iterations + chosen.ae_iterations
+        chosen.ae_iterations += continue_ae
     (run_dir / "recipe.json").write_text(json.dumps(asdict(chosen), indent=2, default=str))
     (run_dir / "dataset.json").write_text(json.dumps(dataset_summary(dataset), indent=2))
     torch.manual_seed(chosen.seed)
@@ -264,7 +268,10 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         source = torch.load(Path(init_from) / "checkpoint.pt", weights_only=False)
         if "bank" not in source:
             raise ValueError(f"{init_from}: its AE stage has not finished; nothing to start from")
-        if rebuild_bank:
+        if continue_ae > 0:
+            state = {"stage": "ae", "iteration": source_iterations, "ae": source["ae"]}
+            log.info("continuing the AE of %s for %d iterations (new code bank)", init_from, continue_ae)
+        elif rebuild_bank:
             state = {"stage": "bank", "iteration": 0, "ae": source["ae"]}
             log.info("starting from the AE of %s (new code bank)", init_from)
         else:

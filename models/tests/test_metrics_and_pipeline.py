@@ -187,6 +187,21 @@ def test_screen_trains_one_vae_per_cell_on_the_same_bank_and_tabulates_them(tiny
     assert rebuilt_state["stage"] == "done"
     with pytest.raises(SystemExit, match="--rebuild-bank goes with --init-from"):
         main(["train", str(tiny_dataset), "--out", str(tmp_path / "r2"), "--recipe", "smoke", "--rebuild-bank"])
+    # The same AE trained 3 iterations more: its weights move, its log goes on from where it stopped.
+    continued = tmp_path / "continued"
+    assert main(["train", str(tiny_dataset), "--out", str(continued), "--recipe", "smoke", "--init-from", str(ae_run),
+                 "--continue-ae", "3"]) == 0
+    continued_state = __import__("torch").load(continued / "checkpoint.pt", weights_only=False)
+    assert continued_state["stage"] == "done"
+    assert any((continued_state["ae"][k] != state["ae"][k]).any() for k in state["ae"])
+    recipe = json.loads((continued / "recipe.json").read_text())
+    source = json.loads((ae_run / "recipe.json").read_text())
+    assert recipe["ae_iterations"] == source["ae_iterations"] + 3
+    ae_rows = [json.loads(line) for line in (continued / "log.jsonl").read_text().splitlines()]
+    ae_rows = [r for r in ae_rows if r.get("stage") == "ae"]
+    assert ae_rows and min(r["iteration"] for r in ae_rows) > source["ae_iterations"] + source["ae_pretrain_iterations"]
+    with pytest.raises(SystemExit, match="--continue-ae goes with --init-from"):
+        main(["train", str(tiny_dataset), "--out", str(tmp_path / "r3"), "--recipe", "smoke", "--continue-ae", "2"])
     assert "| C | J |" in (screen_dir / "screen.md").read_text()
     refused = main(["screen", str(ae_run), str(tiny_dataset), "--out", str(screen_dir), "--factors", "X"])
     assert refused != 0
