@@ -2,7 +2,7 @@
 //!
 //! - The encoder's yaw, every frame: noisy, and for near-symmetric bodies sometimes the back taken
 //!   for the front. It is used as an *axial* measurement (yaw modulo 180 degrees) for the angle, and
-//!   as one weak vote on which way is forward.
+//!   as one vote per frame on which way is forward (`heading_encoder_vote`).
 //! - The direction of motion of the object's centre, when it moves faster than a threshold: a
 //!   walking subject faces where it goes. It measures the angle and votes strongly on the sense.
 //!
@@ -17,9 +17,8 @@ use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
 use super::TrackSettings;
 
-/// Votes per frame on the sense (log-odds units): the encoder is a weak witness of front and
-/// back, motion a strong one.
-const ENCODER_VOTE: f64 = 0.25;
+/// Vote per frame of motion on the sense (log-odds units): a strong witness of front and back (the
+/// encoder's vote per frame is `heading_encoder_vote`).
 const MOTION_VOTE: f64 = 1.0;
 /// Sense evidence a new track starts with: a few contrary frames may still turn it round.
 const INITIAL_SENSE: f64 = 1.0;
@@ -117,6 +116,7 @@ pub struct HeadingFilter {
     min_speed: f64,
     motion_var: f64,
     max_sense: f64,
+    encoder_vote: f64,
     motion: Motion,
     /// yaw, rate, covariance [[yy, yr], [ry, rr]], sense log-odds.
     state: Option<([f64; 2], [[f64; 2]; 2], f64)>,
@@ -137,6 +137,7 @@ impl HeadingFilter {
             min_speed: settings.motion_min_speed_mps as f64,
             motion_var: (settings.motion_heading_std_deg as f64).to_radians().powi(2),
             max_sense: settings.heading_flip_evidence as f64,
+            encoder_vote: settings.heading_encoder_vote as f64,
             motion: Motion {
                 window_s: settings.motion_window_s as f64,
                 samples: VecDeque::new(),
@@ -201,7 +202,7 @@ impl HeadingFilter {
         // Sense votes, then turn round if the evidence says the track faces backwards.
         // An encoder that scatters widely is a weaker witness of front and back too.
         let encoder_agrees = wrap(encoder_yaw - x[0]).abs() < FRAC_PI_2;
-        let vote = ENCODER_VOTE * (self.measurement_var / self.encoder_variance());
+        let vote = self.encoder_vote * (self.measurement_var / self.encoder_variance());
         sense += if encoder_agrees { vote } else { -vote };
         if let Some((m, _)) = motion {
             sense += if wrap(m - x[0]).abs() < FRAC_PI_2 {

@@ -93,6 +93,9 @@ pub struct TrackSettings {
     /// Most front/back evidence the track keeps (log-odds): how much contrary evidence it takes to
     /// turn the track round by 180 degrees.
     pub heading_flip_evidence: f32,
+    /// Front/back evidence one encoder frame adds (log-odds; a walking frame adds 1), before it is
+    /// scaled down for an encoder that jitters more than `heading_std_deg`.
+    pub heading_encoder_vote: f32,
 }
 
 impl Default for TrackSettings {
@@ -117,6 +120,7 @@ impl Default for TrackSettings {
             motion_min_speed_mps: 0.3,
             motion_heading_std_deg: 10.0,
             heading_flip_evidence: 6.0,
+            heading_encoder_vote: 0.5,
         }
     }
 }
@@ -137,6 +141,7 @@ impl TrackSettings {
             ("motion_min_speed_mps", self.motion_min_speed_mps),
             ("motion_heading_std_deg", self.motion_heading_std_deg),
             ("heading_flip_evidence", self.heading_flip_evidence),
+            ("heading_encoder_vote", self.heading_encoder_vote),
         ];
         for (name, value) in positive {
             if !(value > 0.0 && value.is_finite()) {

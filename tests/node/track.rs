@@ -445,16 +445,15 @@ fn a_constant_rate_turn_in_place_is_followed_with_bounded_lag() {
     );
 }
 
-#[test]
-fn a_burst_of_back_to_front_measurements_does_not_turn_the_track_round() {
-    let settings = TrackSettings::default();
-    let mut filter = HeadingFilter::new(&settings);
+/// An idle subject whose encoder takes the back for the front for `burst` frames from frame 90:
+/// panics if the track leaves the truth by 15 degrees or turns round.
+fn burst_of_back_to_front_frames(settings: &TrackSettings, burst: usize) {
+    let mut filter = HeadingFilter::new(settings);
     let mut rng = ChaCha8Rng::seed_from_u64(12);
     let noise = Normal::new(0.0, 10f64.to_radians()).unwrap();
     let truth = 1.0;
     for step in 0..200 {
-        // Frames 90..110: the encoder takes the back for the front (20 frames, 0.67 s).
-        let flipped = (90..110).contains(&step);
+        let flipped = (90..90 + burst).contains(&step);
         let measured = truth + noise.sample(&mut rng) + if flipped { std::f64::consts::PI } else { 0.0 };
         let heading = filter.update(measured, [0.0, 0.0], DT);
         if step >= 30 {
@@ -467,6 +466,24 @@ fn a_burst_of_back_to_front_measurements_does_not_turn_the_track_round() {
             assert!(!heading.turned_round, "step {step}: turned round");
         }
     }
+}
+
+#[test]
+fn a_burst_of_back_to_front_measurements_does_not_turn_the_track_round() {
+    // Default encoder vote (0.5): 10 frames (0.33 s) are outvoted by the evidence gathered before.
+    burst_of_back_to_front_frames(&TrackSettings::default(), 10);
+    // A weaker vote outlasts a longer burst: 20 frames (0.67 s).
+    let patient = TrackSettings {
+        heading_encoder_vote: 0.25,
+        ..TrackSettings::default()
+    };
+    burst_of_back_to_front_frames(&patient, 20);
+    // And the burst test can fail: the default vote turns round on 20 flipped frames.
+    let turned = std::panic::catch_unwind(|| burst_of_back_to_front_frames(&TrackSettings::default(), 20));
+    assert!(
+        turned.is_err(),
+        "20 flipped frames at the default vote should turn the track round"
+    );
 }
 
 #[test]
