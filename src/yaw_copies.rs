@@ -63,6 +63,11 @@ pub fn fuse(copies: &[Encoding], angles: &[f32]) -> (Encoding, usize) {
     if copies.len() == 1 {
         return (copies[0].clone(), 1);
     }
+    // A non-finite copy makes the frame non-finite: the encode stage rejects it (and counts it)
+    // rather than fusing around it.
+    if let Some(broken) = copies.iter().find(|e| !e.is_finite()) {
+        return (broken.clone(), 0);
+    }
     // Copy k saw R_z(a_k) * P, so its rotation estimates R_z(a_k) * R: turn it back by -a_k.
     let votes: Vec<[f32; 4]> = copies
         .iter()
@@ -172,6 +177,15 @@ mod tests {
         // The outvoted copy's code is left out; variances are averaged, not shrunk.
         assert!((fused.z_i_mean[0] - 1.0).abs() < 1e-6);
         assert!((fused.z_i_logvar[0] - (0.5f32).ln()).abs() < 1e-6);
+    }
+
+    #[test]
+    fn a_non_finite_copy_makes_the_frame_non_finite() {
+        let steps = angles(2);
+        let mut broken = encoding(yaw_q(0.0), 1.0);
+        broken.q[0] = f32::NAN;
+        let (fused, agreed) = fuse(&[encoding(yaw_q(0.0), 1.0), broken], &steps);
+        assert!(!fused.is_finite() && agreed == 0);
     }
 
     #[test]
