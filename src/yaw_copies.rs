@@ -13,6 +13,7 @@
 //! measurements). `z_R`, which describes the rotation as seen, is the unturned copy's.
 
 use crate::runtime::Encoding;
+use crate::track::pose::normalized as unit;
 
 /// Copies further than this from the medoid's rotation are outvoted.
 pub const INLIER_DEG: f32 = 45.0;
@@ -44,15 +45,6 @@ pub fn turn_rotation(q: [f32; 4], angle: f32) -> [f32; 4] {
 fn angle_between(a: &[f32; 4], b: &[f32; 4]) -> f32 {
     let dot: f32 = a.iter().zip(b).map(|(x, y)| x * y).sum();
     2.0 * dot.abs().min(1.0).acos()
-}
-
-fn unit(q: [f32; 4]) -> [f32; 4] {
-    let n = q.iter().map(|c| c * c).sum::<f32>().sqrt();
-    if n > 0.0 && n.is_finite() {
-        q.map(|c| c / n)
-    } else {
-        [1.0, 0.0, 0.0, 0.0]
-    }
 }
 
 /// One frame's encoding from its copies' encodings; `copies[k]` saw the frame turned by `angles[k]`
@@ -92,26 +84,18 @@ pub fn fuse(copies: &[Encoding], angles: &[f32]) -> (Encoding, usize) {
             *sum += sign * c;
         }
     }
-    let mean = |field: fn(&Encoding) -> &Vec<f32>| -> Vec<f32> {
-        let width = field(&copies[0]).len();
-        let mut sum = vec![0.0f32; width];
+    // The inliers' mean of one output, element by element, taken in the space `into` maps to.
+    let mean_in = |field: fn(&Encoding) -> &Vec<f32>, into: fn(f32) -> f32, back: fn(f32) -> f32| -> Vec<f32> {
+        let mut sum = vec![0.0f32; field(&copies[0]).len()];
         for &k in &inliers {
             for (s, v) in sum.iter_mut().zip(field(&copies[k])) {
-                *s += v;
+                *s += into(*v);
             }
         }
-        sum.iter().map(|s| s / inliers.len() as f32).collect()
+        sum.iter().map(|s| back(s / inliers.len() as f32)).collect()
     };
-    let mean_variance = |field: fn(&Encoding) -> &Vec<f32>| -> Vec<f32> {
-        let width = field(&copies[0]).len();
-        let mut sum = vec![0.0f32; width];
-        for &k in &inliers {
-            for (s, v) in sum.iter_mut().zip(field(&copies[k])) {
-                *s += v.exp();
-            }
-        }
-        sum.iter().map(|s| (s / inliers.len() as f32).ln()).collect()
-    };
+    let mean = |field: fn(&Encoding) -> &Vec<f32>| mean_in(field, |v| v, |v| v);
+    let mean_variance = |field: fn(&Encoding) -> &Vec<f32>| mean_in(field, f32::exp, f32::ln);
     let fused = Encoding {
         q: unit(q),
         x_c: mean(|e| &e.x_c),

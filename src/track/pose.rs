@@ -51,7 +51,8 @@ pub fn yaw_of(q: &[f32; 4]) -> f32 {
     (2.0 * (w * z + x * y)).atan2(1.0 - 2.0 * (y * y + z * z))
 }
 
-fn normalized(q: [f32; 4]) -> [f32; 4] {
+/// `q` scaled to unit length; the identity rotation if it has none (zero or not finite).
+pub(crate) fn normalized(q: [f32; 4]) -> [f32; 4] {
     let n = q.iter().map(|c| c * c).sum::<f32>().sqrt();
     if n > 0.0 && n.is_finite() {
         q.map(|c| c / n)
