@@ -37,10 +37,50 @@ pub fn read_metadata(folder: &Path) -> Result<Metadata, String> {
     parse_metadata(&text, folder)
 }
 
+/// Most structure one line of `metadata.yaml` may open before its content (indentation and block
+/// indicators: each nesting level of a block collection takes at least one column), and most
+/// nested flow brackets. rosbag2 writes a few levels; the limits keep yaml-rust2, which recurses
+/// once per level, far from the end of a source thread's stack.
+const MAX_STRUCTURE_COLUMNS: usize = 256;
+const MAX_FLOW_DEPTH: usize = 64;
+
+/// Refuses YAML nested deeper than a metadata file can be (found by fuzzing: 28 KB of `- - - ...`
+/// overflowed the stack inside yaml-rust2's scanner, which aborts the whole process).
+fn check_nesting(text: &str) -> Result<(), String> {
+    let mut flow_depth = 0usize;
+    for (number, line) in text.lines().enumerate() {
+        let structure = line
+            .chars()
+            .take_while(|c| matches!(c, ' ' | '\t' | '-' | '?' | ':'))
+            .count();
+        if structure > MAX_STRUCTURE_COLUMNS {
+            return Err(format!(
+                "line {}: nested deeper than a metadata file can be ({structure} columns of indentation and indicators, at most {MAX_STRUCTURE_COLUMNS})",
+                number + 1
+            ));
+        }
+        for c in line.chars() {
+            match c {
+                '[' | '{' => flow_depth += 1,
+                ']' | '}' => flow_depth = flow_depth.saturating_sub(1),
+                _ => {}
+            }
+            if flow_depth > MAX_FLOW_DEPTH {
+                return Err(format!(
+                    "line {}: more than {MAX_FLOW_DEPTH} nested brackets",
+                    number + 1
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// `metadata.yaml`'s text, for the bag in `folder` (listed files are checked to exist there).
 pub fn parse_metadata(text: &str, folder: &Path) -> Result<Metadata, String> {
     let path = folder.join("metadata.yaml");
     let fail = |message: String| format!("{}: {message}", path.display());
+    check_nesting(text).map_err(fail)?;
     let documents = yaml_rust2::YamlLoader::load_from_str(text).map_err(|e| fail(format!("not YAML: {e}")))?;
     let info = documents
         .first()
