@@ -623,7 +623,7 @@ fn a_compressed_pcd_whose_columns_are_shorter_than_its_points_is_a_clear_error()
 
 #[test]
 fn a_metadata_yaml_nested_thousands_deep_is_a_clear_error_not_a_stack_overflow() {
-    // Found by `cargo fuzz run rosbag2` after about 5.5 M executions: 28 KB of `- - - ...`, block
+    // Found by `cargo fuzz run rosbag2` after about 5.6 M executions: 28 KB of `- - - ...`, block
     // sequences nested thousands deep, overflowed the stack inside yaml-rust2's scanner (an abort
     // of the whole process). The nesting is now bounded before the YAML is parsed.
     let bytes = std::fs::read(repo().join("tests/fixtures/hostile/rosbag2_metadata_nested_sequences.yaml")).unwrap();
