@@ -13,7 +13,7 @@
 //! measurements). `z_R`, which describes the rotation as seen, is the unturned copy's.
 
 use crate::runtime::Encoding;
-use crate::track::pose::normalized as unit;
+use crate::track::pose::{normalized as unit, turn_rotation};
 
 /// Copies further than this from the medoid's rotation are outvoted.
 pub const INLIER_DEG: f32 = 45.0;
@@ -32,13 +32,6 @@ pub fn turned(cloud: &[[f32; 3]], angle: f32) -> Vec<[f32; 3]> {
         .iter()
         .map(|&[x, y, z]| [c * x - s * y, s * x + c * y, z])
         .collect()
-}
-
-/// q [w, x, y, z] with the turn about +z by `angle` applied on the left: R_z(angle) * q.
-pub fn turn_rotation(q: [f32; 4], angle: f32) -> [f32; 4] {
-    let (s, c) = (angle / 2.0).sin_cos();
-    let [w, x, y, z] = q;
-    [c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w]
 }
 
 /// The rotation angle (radians) between two unit quaternions (q and -q are the same rotation).
@@ -66,11 +59,12 @@ pub fn fuse(copies: &[Encoding], angles: &[f32]) -> (Encoding, usize) {
         .zip(angles)
         .map(|(e, &a)| unit(turn_rotation(unit(e.q), -a)))
         .collect();
+    let spreads: Vec<f32> = votes
+        .iter()
+        .map(|a| votes.iter().map(|b| angle_between(a, b)).sum())
+        .collect();
     let medoid = (0..votes.len())
-        .min_by(|&i, &j| {
-            let spread = |k: usize| votes.iter().map(|v| angle_between(&votes[k], v)).sum::<f32>();
-            spread(i).total_cmp(&spread(j))
-        })
+        .min_by(|&i, &j| spreads[i].total_cmp(&spreads[j]))
         .unwrap_or(0);
     let limit = INLIER_DEG.to_radians();
     let inliers: Vec<usize> = (0..votes.len())

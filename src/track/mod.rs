@@ -213,9 +213,5 @@ impl StreamTracker {
 
 /// `q` [w, x, y, z] turned about +z so that its yaw becomes `yaw`.
 pub fn with_yaw(q: [f32; 4], yaw: f32) -> [f32; 4] {
-    let delta = (yaw - yaw_of(&q)) / 2.0;
-    let (s, c) = delta.sin_cos();
-    // r = (c, 0, 0, s) applied on the left: r * q.
-    let [w, x, y, z] = q;
-    [c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w]
+    pose::turn_rotation(q, yaw - yaw_of(&q))
 }

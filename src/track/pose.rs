@@ -51,6 +51,13 @@ pub fn yaw_of(q: &[f32; 4]) -> f32 {
     (2.0 * (w * z + x * y)).atan2(1.0 - 2.0 * (y * y + z * z))
 }
 
+/// q [w, x, y, z] with the turn about +z by `angle` (radians) applied on the left: R_z(angle) * q.
+pub fn turn_rotation(q: [f32; 4], angle: f32) -> [f32; 4] {
+    let (s, c) = (angle / 2.0).sin_cos();
+    let [w, x, y, z] = q;
+    [c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w]
+}
+
 /// `q` scaled to unit length; the identity rotation if it has none (zero or not finite).
 pub(crate) fn normalized(q: [f32; 4]) -> [f32; 4] {
     let n = q.iter().map(|c| c * c).sum::<f32>().sqrt();
