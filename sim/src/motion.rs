@@ -164,6 +164,12 @@ impl Motion {
         self.spec.frame_count()
     }
 
+    /// The subject's yaw at frame `index` (radians, unwrapped): the path alone, without posing a
+    /// mesh.
+    pub fn yaw_at(&self, index: usize) -> f64 {
+        self.path.at(index).yaw
+    }
+
     /// Which subject is on stage at `time`.
     fn subject_index(&self, time: f64) -> usize {
         self.spec.switch_times.iter().filter(|&&t| t <= time).count()
@@ -221,6 +227,11 @@ struct PathSample {
 /// Period of the figure-of-eight (s) and turning rate when idle (rad/s).
 const PATH_PERIOD: f64 = 12.0;
 const IDLE_TURN_RATE: f64 = 0.35;
+/// Fastest a walking subject turns (rad/s): a brisk turn on the spot. With some start phases the
+/// path nearly stops and reverses, and its direction swings by up to 180 degrees within a few
+/// frames (over 1,000 degrees/s); a body turns no faster than this, so there it lags the path for a
+/// moment while it hardly moves.
+pub const MAX_TURN_RATE: f64 = std::f64::consts::PI;
 
 impl Path {
     fn new(spec: &MotionSpec, subjects: &[&Subject]) -> Self {
@@ -249,7 +260,12 @@ impl Path {
                 MotionKind::Walk => {
                     let [vx, vy] = velocity(t);
                     let heading = vy.atan2(vx);
-                    yaw = if index == 0 { heading } else { yaw + wrap(heading - yaw) };
+                    let max_turn = MAX_TURN_RATE * dt;
+                    yaw = if index == 0 {
+                        heading
+                    } else {
+                        yaw + wrap(heading - yaw).clamp(-max_turn, max_turn)
+                    };
                     if index > 0 {
                         gait_phase += vx.hypot(vy) * dt / stride_length(subject);
                     }

@@ -3,7 +3,7 @@
 use gdvae_sim::camera::{ground_box, DepthCamera, Intrinsics, Scene, StereoModel};
 use gdvae_sim::family::Family;
 use gdvae_sim::mesh::Mesh;
-use gdvae_sim::motion::{Motion, MotionKind, MotionSpec};
+use gdvae_sim::motion::{Motion, MotionKind, MotionSpec, MAX_TURN_RATE};
 use gdvae_sim::recording::{write_recording, RecordingOptions, GROUND_TRUTH_TOPIC, POINTS_TOPIC};
 use gdvae_sim::scenario::{Scenario, ViewSpec};
 use gdvae_sim::seeds;
@@ -182,6 +182,34 @@ fn motion_is_smooth_and_identity_changes_only_at_switches() {
     }
     let identities: std::collections::BTreeSet<_> = frames.iter().map(|f| f.subject.clone()).collect();
     assert_eq!(identities.len(), 2);
+}
+
+#[test]
+fn a_walking_subject_never_turns_faster_than_a_body_can() {
+    // Over a whole path period and many start phases, some paths nearly stop and reverse; there the
+    // path's direction swings by up to 180 degrees within a few frames, and the body must not.
+    let fps = 30.0;
+    let (mut fastest, mut capped) = (0.0f64, 0);
+    for seed in 0..12 {
+        let spec = MotionSpec {
+            duration: 12.0,
+            seed,
+            ..walk_spec(vec![])
+        };
+        let motion = Motion::new(spec).unwrap();
+        let yaws: Vec<f64> = (0..motion.frame_count()).map(|i| motion.yaw_at(i)).collect();
+        for pair in yaws.windows(2) {
+            let rate = (pair[1] - pair[0]).abs() * fps;
+            assert!(rate <= MAX_TURN_RATE + 1e-9, "seed {seed}: turned at {rate} rad/s");
+            fastest = fastest.max(rate);
+            capped += usize::from(rate > MAX_TURN_RATE - 1e-9);
+        }
+    }
+    // The bound is reached (some path turns faster than a body), so this test can fail.
+    assert!(
+        capped > 0,
+        "no path turned fast enough to meet the bound (fastest {fastest} rad/s)"
+    );
 }
 
 #[test]
