@@ -114,11 +114,11 @@ impl Default for TrackSettings {
             nominal_rate_hz: 30.0,
             heading: HeadingMode::Tracker,
             heading_std_deg: 12.0,
-            heading_accel_std: 6.0,
+            heading_accel_std: 12.0,
             heading_from_motion: true,
             motion_window_s: 1.0,
             motion_min_speed_mps: 0.3,
-            motion_heading_std_deg: 10.0,
+            motion_heading_std_deg: 20.0,
             heading_flip_evidence: 6.0,
             heading_encoder_vote: 0.5,
         }
