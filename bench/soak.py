@@ -68,7 +68,7 @@ def main():
 [node]
 name = "soak"
 [model]
-bundle = "{ROOT / 'models/bundles/cpu-gdvaepp'}"
+bundle = "{ROOT / 'models/bundles/cpu-fo'}"
 [pipeline]
 summary_seconds = 0.0
 {prepare}

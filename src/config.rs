@@ -82,7 +82,7 @@ pub struct ModelSettings {
 impl Default for ModelSettings {
     fn default() -> Self {
         Self {
-            bundle: PathBuf::from("models/bundles/cpu-gdvaepp"),
+            bundle: PathBuf::from("models/bundles/cpu-fo"),
             onnxruntime: None,
             workers: 1,
             threads: 2,

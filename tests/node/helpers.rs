@@ -13,7 +13,7 @@ pub fn repo() -> &'static Path {
 }
 
 pub fn shipped_bundle() -> PathBuf {
-    repo().join("models/bundles/cpu-gdvaepp")
+    repo().join("models/bundles/cpu-fo")
 }
 
 pub fn sample_recording() -> PathBuf {

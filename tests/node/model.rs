@@ -9,7 +9,7 @@ use gdvae_node::runtime::Encoder;
 use gdvae_node::sources::files::{read_cloud, FileOptions};
 
 fn shipped() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("models/bundles/cpu-gdvaepp")
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("models/bundles/cpu-fo")
 }
 
 fn prepared(bundle: &Bundle, mesh: &str, seed: u64) -> Vec<[f32; 3]> {

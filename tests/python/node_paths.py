@@ -19,7 +19,7 @@ def sample_settings():
     summary, and the sample camera's [prepare] section as `config/replay.toml` has it."""
     replay = (ROOT / "config/replay.toml").read_text()
     prepare = replay[replay.index("[prepare]"):replay.index("[publish]")]
-    return (f'[model]\nbundle = "{ROOT / "models/bundles/cpu-gdvaepp"}"\nthreads = 1\n'
+    return (f'[model]\nbundle = "{ROOT / "models/bundles/cpu-fo"}"\nthreads = 1\n'
             f"[pipeline]\nsummary_seconds = 0.0\n{prepare}")
 
 

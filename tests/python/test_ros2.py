@@ -231,7 +231,7 @@ def test_a_python_rmw_zenoh_publisher_feeds_the_node_by_topic_name(tmp_path):
     config = tmp_path / "node.toml"
     config.write_text(f"""
 [model]
-bundle = "{ROOT / 'models/bundles/cpu-gdvaepp'}"
+bundle = "{ROOT / 'models/bundles/cpu-fo'}"
 threads = 1
 [pipeline]
 summary_seconds = 0.0
