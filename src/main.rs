@@ -129,6 +129,10 @@ struct EvaluateArgs {
     /// Write one PNG per recording into this folder.
     #[arg(long)]
     plots: Option<PathBuf>,
+    /// Write every published state as a JSON line with the ground truth it was matched to
+    /// (`{"state": ..., "truth": ...}`; truth null when unmatched), for studying the raw streams.
+    #[arg(long)]
+    states: Option<PathBuf>,
 }
 
 #[derive(clap::Args)]
@@ -444,6 +448,9 @@ fn evaluate(args: EvaluateArgs) -> Result<()> {
     require_states(&summary)?;
     let outputs: Vec<_> = rx.try_iter().collect();
     let report = gdvae_node::evaluate::report(&recordings, &outputs, &options);
+    if let Some(path) = &args.states {
+        write_matched_states(path, &gdvae_node::evaluate::matched_states(&recordings, &outputs))?;
+    }
     if let Some(folder) = plots {
         let threshold = match config.track.change_detector {
             gdvae_node::config::ChangeDetector::Cusum => Some(config.track.cusum_threshold as f64),
@@ -464,6 +471,19 @@ fn evaluate(args: EvaluateArgs) -> Result<()> {
     if report.overall.matched == 0 && report.overall.with_truth > 0 {
         bail!("no state matched any ground-truth frame by sensor stamp");
     }
+    Ok(())
+}
+
+fn write_matched_states(path: &Path, states: &[gdvae_node::evaluate::MatchedState]) -> Result<()> {
+    use std::io::Write;
+    let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut out = std::io::BufWriter::new(file);
+    for state in states {
+        serde_json::to_writer(&mut out, state)?;
+        out.write_all(b"\n")?;
+    }
+    out.flush().with_context(|| format!("writing {}", path.display()))?;
+    eprintln!("evaluate: {} state(s) in {}", states.len(), path.display());
     Ok(())
 }
 

@@ -206,6 +206,17 @@ def export_command(args) -> int:
     return 0
 
 
+def import_bundle_command(args) -> int:
+    from .import_bundle import import_bundle
+
+    summary = import_bundle(args.bundle, args.out)
+    print(f"{args.bundle} -> {args.out}: {summary['ae']} autoencoder ({summary['rotation_head']} head) and "
+          f"{summary['regime']} VAE, matching the bundle's graphs to {summary['parity_max_diff']:.2g}")
+    if summary["vae_not_in_bundle"]:
+        print(f"not in the bundle (initial values): {', '.join(summary['vae_not_in_bundle'])}")
+    return 0
+
+
 def screen_command(args) -> int:
     from .screen import screen
 
@@ -297,6 +308,12 @@ def main(argv=None) -> int:
                         help="measure z_I's variance calibration on DATASET's held-out subjects (the node's "
                              "tracker scales the encoder's variances by it); without it the bundle has none (1)")
     export.set_defaults(handler=export_command)
+
+    importing = commands.add_parser(
+        "import-bundle", help="a shipped bundle back into a run folder (its AE and VAE weights, read from the ONNX graphs)")
+    importing.add_argument("bundle", help="bundle folder written by `export`")
+    importing.add_argument("--out", required=True, help="run folder to write (recipe.json, checkpoint.pt)")
+    importing.set_defaults(handler=import_bundle_command)
 
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)

@@ -111,10 +111,12 @@ def load_run(run_dir: str | Path) -> tuple[Recipe, Autoencoder, LatentVAE | None
     ae.load_state_dict(state["ae"])
     ae.eval()
     vae = None
-    if "vae" in state:
-        spectrum = state["bank"]["spectrum"].shape[1]
+    # A run imported from a bundle (import_bundle.py) carries the bundle's VAE beside its AE.
+    vae_state = state.get("vae", state.get("imported_vae"))
+    if vae_state is not None:
+        spectrum = state["bank"]["spectrum"].shape[1] if "bank" in state else vae_config.spectrum
         vae = LatentVAE(replace(vae_config, latent=ae_config.latent, spectrum=spectrum))
-        vae.load_state_dict(state["vae"])
+        vae.load_state_dict(vae_state)
         vae.eval()
     return chosen, ae, vae, state
 
@@ -266,8 +268,11 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         log.info("resuming from %s: stage %s, iteration %d", checkpoint_path, state["stage"], state["iteration"])
     elif init_from is not None:
         source = torch.load(Path(init_from) / "checkpoint.pt", weights_only=False)
-        if "bank" not in source:
+        if source.get("stage") == "ae":
             raise ValueError(f"{init_from}: its AE stage has not finished; nothing to start from")
+        if "bank" not in source and not (continue_ae > 0 or rebuild_bank):
+            raise ValueError(f"{init_from}: it has no code bank (an imported bundle?): "
+                             "start from its AE with --rebuild-bank or --continue-ae N")
         if continue_ae > 0:
             state = {"stage": "ae", "iteration": source_iterations, "ae": source["ae"]}
             log.info("continuing the AE of %s for %d iterations (new code bank)", init_from, continue_ae)

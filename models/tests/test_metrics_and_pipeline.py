@@ -221,3 +221,43 @@ def test_variance_calibration_is_the_within_subject_spread_over_the_reported_var
     # Subjects seen once say nothing about the spread.
     with pytest.raises(ValueError, match="two or more"):
         variance_calibration(means[:3], reported[:3], [0, 1, 2])
+
+
+@pytest.mark.parametrize("architecture", [[], ["--ae", "std", "--set", "ae.rotation_head=yaw"]],
+                         ids=["ftl-quaternion", "std-yaw"])
+def test_a_bundle_imports_back_into_a_run_that_computes_the_same_and_trains_on(tiny_dataset, tmp_path, architecture):
+    from gdvae.export import EncoderGraph
+    from gdvae.train import load_run
+
+    run, bundle, imported = tmp_path / "run", tmp_path / "bundle", tmp_path / "imported"
+    assert main(["train", str(tiny_dataset), "--out", str(run), "--recipe", "smoke", *architecture]) == 0
+    assert main(["export", str(run), "--out", str(bundle)]) == 0
+    assert main(["import-bundle", str(bundle), "--out", str(imported)]) == 0
+    _, ae, vae, _ = load_run(run)
+    _, ae_back, vae_back, state = load_run(imported)
+    assert state["stage"] == "bank" and vae_back is not None
+    points = torch.rand(3, 200, 3) - 0.5
+    with torch.no_grad():
+        for a, b in zip(EncoderGraph(ae, vae).eval()(points), EncoderGraph(ae_back, vae_back).eval()(points)):
+            assert torch.allclose(a, b, atol=1e-5), "the imported model computes what the bundle's run computed"
+        codes = torch.randn(3, ae.config.latent)
+        assert torch.allclose(ae.decode(codes), ae_back.decode(codes), atol=1e-5)
+    # Its autoencoder trains a new code bank and VAE like any run's.
+    again = tmp_path / "again"
+    assert main(["train", str(tiny_dataset), "--out", str(again), "--recipe", "smoke", "--init-from", str(imported)]) == 2
+    assert main(["train", str(tiny_dataset), "--out", str(again), "--recipe", "smoke", "--init-from", str(imported),
+                 "--rebuild-bank"]) == 0
+    assert load_run(again)[2] is not None
+
+
+def test_importing_what_is_not_a_matching_bundle_is_refused_with_the_reason(tiny_dataset, tmp_path, capsys):
+    run, bundle = tmp_path / "run", tmp_path / "bundle"
+    assert main(["import-bundle", str(tmp_path), "--out", str(tmp_path / "x")]) == 2
+    assert "no manifest.json" in capsys.readouterr().err
+    assert main(["train", str(tiny_dataset), "--out", str(run), "--recipe", "smoke"]) == 0
+    assert main(["export", str(run), "--out", str(bundle)]) == 0
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    manifest["sizes"]["x_c"] += 3  # a manifest that does not describe its graphs
+    (bundle / "manifest.json").write_text(json.dumps(manifest))
+    assert main(["import-bundle", str(bundle), "--out", str(tmp_path / "y")]) == 2
+    assert "in the bundle" in capsys.readouterr().err and not (tmp_path / "y" / "checkpoint.pt").exists()

@@ -350,6 +350,35 @@ fn recording_report(
     (report, segments)
 }
 
+/// A published state with the ground truth it was matched to (`None`: no frame of its recording has
+/// its sensor stamp): one line of `evaluate --states`, for scripts that study the raw streams.
+#[derive(Debug, Serialize)]
+pub struct MatchedState<'a> {
+    pub state: &'a State,
+    pub truth: Option<&'a TruthFrame>,
+}
+
+/// Every published state of `outputs`, in publishing order, with its ground truth.
+pub fn matched_states<'a>(recordings: &'a [Recording], outputs: &'a [Output]) -> Vec<MatchedState<'a>> {
+    let by_stamp: HashMap<(&str, u64), &TruthFrame> = recordings
+        .iter()
+        .flat_map(|r| r.truth.iter().map(move |t| ((r.stream.as_str(), t.stamp_nanos), t)))
+        .collect();
+    outputs
+        .iter()
+        .filter_map(|output| match output {
+            Output::State(state) => Some(MatchedState {
+                state,
+                truth: state
+                    .stamps
+                    .sensor_ns
+                    .and_then(|stamp| by_stamp.get(&(state.stream.as_str(), stamp)).copied()),
+            }),
+            Output::Rejected(_) => None,
+        })
+        .collect()
+}
+
 /// Writes one PNG per recording with ground truth into `folder`; returns the files written.
 pub fn write_plots(
     report: &Report,

@@ -172,10 +172,13 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
     short_recording(&with);
     without_truth(&with, &without);
     let plots = dir.path().join("plots");
+    let states_file = dir.path().join("states.jsonl");
     let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
         .current_dir(repo())
         .args(["evaluate", "--config", "config/replay.toml", "--out", "-", "--plots"])
         .arg(&plots)
+        .arg("--states")
+        .arg(&states_file)
         .arg(&with)
         .arg(&without)
         .output()
@@ -234,4 +237,22 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
         "a plot for the recording with truth"
     );
     assert!(!plots.join("bare.png").exists(), "none without truth");
+    // --states: every published state once, with its truth where its recording has one.
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&states_file)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len() as u64, 2 * states);
+    let stream_of = |l: &serde_json::Value| l["state"]["stream"].as_str().unwrap().to_string();
+    let with_stream = r["stream"].as_str().unwrap();
+    for line in &lines {
+        assert_eq!(line["truth"].is_null(), stream_of(line) != with_stream, "{line}");
+        assert_eq!(line["state"]["raw"]["z_i"].as_array().unwrap().len(), 22);
+    }
+    let subjects: std::collections::BTreeSet<&str> = lines
+        .iter()
+        .filter_map(|l| l["truth"]["subject"].as_str())
+        .collect();
+    assert_eq!(subjects.len(), 2, "both subjects' frames carry their subject");
 }
