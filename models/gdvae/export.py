@@ -72,7 +72,11 @@ def example_inputs(ae, vae, batch: int = 2):
     generator = torch.Generator().manual_seed(0)
     points = torch.rand(batch, ae.config.points, 3, generator=generator) - 0.5
     latents = tuple(torch.randn(batch, size, generator=generator) for size in (c.n_extrinsic, c.n_intrinsic, c.n_rotation))
-    spectrum = torch.rand(batch, c.spectrum, generator=generator).cumsum(-1) * 10 + 1
+    # Spectra from the training distribution the flow's first layer was fitted to (its log-eigenvalue
+    # mean and spread), sorted as eigenvalues are: far outside it the flow extrapolates to huge
+    # values whose float32 rounding says nothing about the export.
+    logs = vae.flow.input.mean + vae.flow.input.std * torch.randn(batch, c.spectrum, generator=generator)
+    spectrum = torch.exp(logs).sort(dim=-1).values
     return points, latents, spectrum
 
 
