@@ -263,11 +263,13 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     (run_dir / "dataset.json").write_text(json.dumps(dataset_summary(dataset), indent=2))
     torch.manual_seed(chosen.seed)
     checkpoint_path = run_dir / "checkpoint.pt"
+    imported = False
     if checkpoint_path.exists():
         state = torch.load(checkpoint_path, weights_only=False)
         log.info("resuming from %s: stage %s, iteration %d", checkpoint_path, state["stage"], state["iteration"])
     elif init_from is not None:
         source = torch.load(Path(init_from) / "checkpoint.pt", weights_only=False)
+        imported = "imported_from" in source  # batch norms folded by the export (import_bundle.py)
         if source.get("stage") == "ae":
             raise ValueError(f"{init_from}: its AE stage has not finished; nothing to start from")
         if "bank" not in source and not (continue_ae > 0 or rebuild_bank):
@@ -292,6 +294,12 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if "ae" in state:
         ae.load_state_dict(state["ae"])
     sampler = PointSampler(dataset, train_indices, chosen.ae.points, chosen.seed + state["iteration"])
+    if imported and state["stage"] == "ae":
+        from .import_bundle import restore_batch_norms
+
+        chosen_meshes, _ = sampler.batch(64)
+        restore_batch_norms(ae, sampler.views(chosen_meshes, 3, chosen.partial_views))
+        log.info("batch norms of the imported AE set to the statistics of %d training clouds", 3 * 64)
 
     def save(extra: dict) -> None:
         temporary = checkpoint_path.with_suffix(".tmp")

@@ -248,6 +248,24 @@ def test_a_bundle_imports_back_into_a_run_that_computes_the_same_and_trains_on(t
     assert main(["train", str(tiny_dataset), "--out", str(again), "--recipe", "smoke", "--init-from", str(imported),
                  "--rebuild-bank"]) == 0
     assert load_run(again)[2] is not None
+    # Continuing the AE: its batch norms normalise again (restored from sample clouds), the same
+    # function in eval mode and about the same on a training batch.
+    from gdvae.import_bundle import restore_batch_norms
+
+    clouds = torch.rand(16, 200, 3) - 0.5
+    with torch.no_grad():
+        before = ae_back.encode_rotation(clouds)
+        restore_batch_norms(ae_back, torch.rand(64, 200, 3) - 0.5)
+        assert torch.allclose(before, ae_back.encode_rotation(clouds), atol=1e-5)
+        norm = next(m for m in ae_back.modules() if isinstance(m, torch.nn.BatchNorm1d))
+        features = torch.randn(8, norm.num_features, 200) * norm.weight[None, :, None] + norm.bias[None, :, None]
+        assert not torch.allclose(norm.weight, torch.ones_like(norm.weight)), "set from the clouds"
+        norm.train()
+        assert (norm(features) - features).abs().mean() < 0.1 * features.std()
+    continued = tmp_path / "continued"
+    assert main(["train", str(tiny_dataset), "--out", str(continued), "--recipe", "smoke", "--init-from",
+                 str(imported), "--continue-ae", "2"]) == 0
+    assert load_run(continued)[2] is not None
 
 
 def test_importing_what_is_not_a_matching_bundle_is_refused_with_the_reason(tiny_dataset, tmp_path, capsys):
