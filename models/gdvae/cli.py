@@ -172,8 +172,11 @@ def export_command(args) -> int:
     from .train import dataset_summary, load_run
 
     chosen, ae, vae, state = load_run(args.run)
-    if vae is None:
-        raise ValueError(f"{args.run}: the VAE stage has not finished (stage {state['stage']!r})")
+    # A run still training has a VAE checkpoint, not a trained VAE: a bundle is made of finished
+    # runs (or of one imported from a bundle).
+    if vae is None or (state["stage"] != "done" and "imported_vae" not in state):
+        raise ValueError(f"{args.run}: the VAE stage has not finished (stage {state['stage']!r}, "
+                         f"iteration {state['iteration']}); export a finished run")
     summary_file = Path(args.run) / "dataset.json"
     if summary_file.exists():
         summary = json.loads(summary_file.read_text())

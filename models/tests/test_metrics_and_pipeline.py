@@ -279,3 +279,13 @@ def test_importing_what_is_not_a_matching_bundle_is_refused_with_the_reason(tiny
     (bundle / "manifest.json").write_text(json.dumps(manifest))
     assert main(["import-bundle", str(bundle), "--out", str(tmp_path / "y")]) == 2
     assert "in the bundle" in capsys.readouterr().err and not (tmp_path / "y" / "checkpoint.pt").exists()
+
+
+def test_a_run_still_training_its_vae_is_not_exported(tiny_dataset, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main(["train", str(tiny_dataset), "--out", str(run), "--recipe", "smoke"]) == 0
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    torch.save({**state, "stage": "vae", "iteration": 2}, run / "checkpoint.pt")  # as a checkpoint mid-VAE
+    assert main(["export", str(run), "--out", str(tmp_path / "bundle")]) == 2
+    assert "has not finished (stage 'vae', iteration 2)" in capsys.readouterr().err
+    assert not (tmp_path / "bundle" / "manifest.json").exists()
