@@ -250,9 +250,7 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
         assert_eq!(line["truth"].is_null(), stream_of(line) != with_stream, "{line}");
         assert_eq!(line["state"]["raw"]["z_i"].as_array().unwrap().len(), 22);
     }
-    let subjects: std::collections::BTreeSet<&str> = lines
-        .iter()
-        .filter_map(|l| l["truth"]["subject"].as_str())
-        .collect();
+    let subjects: std::collections::BTreeSet<&str> =
+        lines.iter().filter_map(|l| l["truth"]["subject"].as_str()).collect();
     assert_eq!(subjects.len(), 2, "both subjects' frames carry their subject");
 }
