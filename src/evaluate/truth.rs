@@ -3,13 +3,13 @@
 
 use std::path::{Path, PathBuf};
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 /// The channel the simulator writes (`sim/src/recording.rs`, `GROUND_TRUTH_TOPIC`).
 pub const GROUND_TRUTH_TOPIC: &str = "/sim/ground_truth";
 
 /// One frame's ground truth, the fields `evaluate` uses.
-#[derive(Debug, Clone, Deserialize, serde::Serialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 pub struct TruthFrame {
     /// The sensor stamp of the frame's cloud: states are matched to truth by it.
     pub stamp_nanos: u64,
@@ -23,7 +23,7 @@ pub struct TruthFrame {
     pub world_from_camera: Option<WorldFromCamera>,
 }
 
-#[derive(Debug, Clone, Copy, Deserialize, serde::Serialize)]
+#[derive(Debug, Clone, Copy, Deserialize, Serialize)]
 pub struct WorldFromCamera {
     pub translation: [f64; 3],
     pub rotation_xyzw: [f64; 4],
