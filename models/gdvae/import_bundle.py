@@ -52,9 +52,8 @@ def onnx_initializers(path: Path) -> tuple[dict[str, np.ndarray], list]:
     return {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}, list(model.graph.node)
 
 
-def folded_convolutions(path: Path) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(weight, bias) of each Conv node of the graph, in graph order (the PointNets' layers)."""
-    values, nodes = onnx_initializers(path)
+def folded_convolutions(values: dict[str, np.ndarray], nodes: list) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(weight, bias) of each Conv node of a graph, in graph order (the PointNets' layers)."""
     convolutions = []
     for node in nodes:
         if node.op_type == "Conv":
@@ -67,10 +66,11 @@ def folded_convolutions(path: Path) -> list[tuple[np.ndarray, np.ndarray]]:
 def state_from_bundle(bundle: Path, ae: Autoencoder, vae: LatentVAE) -> tuple[dict, dict, list[str]]:
     """The AE's and the VAE's state dicts read from the bundle's graphs, and the VAE names no graph
     holds (left at their initial values)."""
-    named: dict[str, np.ndarray] = {}
-    for name in ("encoder.onnx", "decoder.onnx", "flow.onnx"):
+    encoder_values, encoder_nodes = onnx_initializers(bundle / "encoder.onnx")
+    named: dict[str, np.ndarray] = dict(encoder_values)
+    for name in ("decoder.onnx", "flow.onnx"):
         named.update(onnx_initializers(bundle / name)[0])
-    convolutions = iter(folded_convolutions(bundle / "encoder.onnx"))
+    convolutions = iter(folded_convolutions(encoder_values, encoder_nodes))
     ae_state = {}
     for encoder in ("rotation_encoder", "shape_encoder"):  # the order encode_rotation, encode_shape run in
         module = getattr(ae, encoder)
