@@ -12,7 +12,8 @@ mod settings;
 
 pub use filters::{crop, fit_ground, keep_largest_cluster, levelling, remove_outliers, remove_plane, transform, Plane};
 pub use sampling::{
-    centre_and_scale, farthest_point_sampling, random_sampling, subsample, voxel_sampling, PrepareError, Sampling,
+    centre_and_scale, farthest_point_sampling, farthest_point_sampling_plain, random_sampling, subsample,
+    voxel_sampling, PrepareError, Sampling,
 };
 pub use settings::{check_rotation, OutlierMethod, OutlierSettings, PrepareSettings};
 

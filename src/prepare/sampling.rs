@@ -26,8 +26,36 @@ pub enum PrepareError {
 }
 
 /// Farthest point sampling: start at a seeded random point, then repeatedly take the point
-/// farthest from those chosen. O(N * count).
+/// farthest from those chosen (of equal ones, the first in the cloud).
+///
+/// Exactly what [`farthest_point_sampling_plain`] returns, at a fraction of its O(N * count)
+/// cost: the points are grouped into buckets of nearby points (a k-d split), each with its
+/// bounding box and its largest distance to the chosen set. A new sample can lower no distance in
+/// a bucket whose box is at least that far from it, so the bucket is skipped. The bound is exact
+/// in floating point (rounded subtraction, squaring and addition are monotone, and the box gap is
+/// summed in the same order as the distances), so the choice is the same point for point.
 pub fn farthest_point_sampling(points: &[[f32; 3]], count: usize, seed: u64) -> Vec<[f32; 3]> {
+    if points.len() <= count {
+        return points.to_vec();
+    }
+    if points.len() < 4 * BUCKET || points.iter().flatten().any(|c| !c.is_finite()) {
+        return farthest_point_sampling_plain(points, count, seed);
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut current = rng.random_range(0..points.len());
+    let mut buckets = Buckets::new(points);
+    let mut chosen = Vec::with_capacity(count);
+    for _ in 0..count {
+        let c = points[current];
+        chosen.push(c);
+        current = buckets.add_sample(c);
+    }
+    chosen
+}
+
+/// The textbook loop, O(N * count): the reference [`farthest_point_sampling`] is tested against,
+/// and its path for small or non-finite clouds.
+pub fn farthest_point_sampling_plain(points: &[[f32; 3]], count: usize, seed: u64) -> Vec<[f32; 3]> {
     if points.len() <= count {
         return points.to_vec();
     }
@@ -51,6 +79,120 @@ pub fn farthest_point_sampling(points: &[[f32; 3]], count: usize, seed: u64) -> 
         current = nearest.iter().position(|n| *n == largest).unwrap_or(0);
     }
     chosen
+}
+
+/// Points per bucket of [`farthest_point_sampling`], at most (a leaf of the k-d split).
+const BUCKET: usize = 48;
+
+/// The cloud reordered bucket by bucket (structure of arrays), with each point's squared distance
+/// to the chosen set and its index in the cloud.
+struct Buckets {
+    xs: Vec<f32>,
+    ys: Vec<f32>,
+    zs: Vec<f32>,
+    index: Vec<u32>,
+    nearest: Vec<f32>,
+    /// Per bucket: its range in the arrays, its box, and its farthest point (distance, index).
+    ranges: Vec<(usize, usize)>,
+    boxes: Vec<([f32; 3], [f32; 3])>,
+    farthest: Vec<(f32, u32)>,
+}
+
+impl Buckets {
+    fn new(points: &[[f32; 3]]) -> Self {
+        let mut order: Vec<u32> = (0..points.len() as u32).collect();
+        let mut ranges = Vec::with_capacity(2 * points.len() / BUCKET + 1);
+        split(points, &mut order, 0, &mut ranges);
+        let boxes = ranges
+            .iter()
+            .map(|&(start, end)| {
+                order[start..end]
+                    .iter()
+                    .fold(([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]), |(low, high), &i| {
+                        let p = points[i as usize];
+                        (
+                            [0, 1, 2].map(|a| low[a].min(p[a])),
+                            [0, 1, 2].map(|a| high[a].max(p[a])),
+                        )
+                    })
+            })
+            .collect();
+        Self {
+            xs: order.iter().map(|&i| points[i as usize][0]).collect(),
+            ys: order.iter().map(|&i| points[i as usize][1]).collect(),
+            zs: order.iter().map(|&i| points[i as usize][2]).collect(),
+            nearest: vec![f32::INFINITY; points.len()],
+            farthest: vec![(f32::INFINITY, 0); ranges.len()],
+            index: order,
+            ranges,
+            boxes,
+        }
+    }
+
+    /// Takes `c` into the chosen set and returns the cloud index of the next farthest point.
+    fn add_sample(&mut self, c: [f32; 3]) -> usize {
+        for b in 0..self.ranges.len() {
+            let (low, high) = self.boxes[b];
+            let g = [0, 1, 2].map(|a| (low[a] - c[a]).max(c[a] - high[a]).max(0.0));
+            let gap = g[0] * g[0] + g[1] * g[1] + g[2] * g[2];
+            if gap >= self.farthest[b].0 {
+                continue;
+            }
+            let (start, end) = self.ranges[b];
+            let nearest = &mut self.nearest[start..end];
+            for (((n, x), y), z) in nearest
+                .iter_mut()
+                .zip(&self.xs[start..end])
+                .zip(&self.ys[start..end])
+                .zip(&self.zs[start..end])
+            {
+                let d = (x - c[0]) * (x - c[0]) + (y - c[1]) * (y - c[1]) + (z - c[2]) * (z - c[2]);
+                *n = n.min(d);
+            }
+            let mut best = (f32::NEG_INFINITY, u32::MAX);
+            for (n, &i) in nearest.iter().zip(&self.index[start..end]) {
+                if *n > best.0 || (*n == best.0 && i < best.1) {
+                    best = (*n, i);
+                }
+            }
+            self.farthest[b] = best;
+        }
+        let mut best = (f32::NEG_INFINITY, u32::MAX);
+        for &(n, i) in &self.farthest {
+            if n > best.0 || (n == best.0 && i < best.1) {
+                best = (n, i);
+            }
+        }
+        best.1 as usize
+    }
+}
+
+/// Splits `order[offset..]` at the median of its widest axis until at most [`BUCKET`] points
+/// remain, and appends each leaf's range.
+fn split(points: &[[f32; 3]], order: &mut [u32], offset: usize, ranges: &mut Vec<(usize, usize)>) {
+    if order.len() <= BUCKET {
+        ranges.push((offset, offset + order.len()));
+        return;
+    }
+    let (low, high) = order
+        .iter()
+        .fold(([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]), |(low, high), &i| {
+            let p = points[i as usize];
+            (
+                [0, 1, 2].map(|a| low[a].min(p[a])),
+                [0, 1, 2].map(|a| high[a].max(p[a])),
+            )
+        });
+    let axis = (0..3)
+        .max_by(|&a, &b| (high[a] - low[a]).total_cmp(&(high[b] - low[b])))
+        .unwrap_or(0);
+    let middle = order.len() / 2;
+    order.select_nth_unstable_by(middle, |&i, &j| {
+        points[i as usize][axis].total_cmp(&points[j as usize][axis])
+    });
+    let (left, right) = order.split_at_mut(middle);
+    split(points, left, offset, ranges);
+    split(points, right, offset + middle, ranges);
 }
 
 pub fn random_sampling(points: &[[f32; 3]], count: usize, seed: u64) -> Vec<[f32; 3]> {

@@ -67,3 +67,74 @@ fn centring_uses_the_bounding_box_and_scales() {
     assert_eq!(centre, [2.0, 4.0, 4.0]);
     assert_eq!(points[0], [-0.5, -1.0, -0.5]);
 }
+
+/// A deterministic pseudo-random cloud: a few dense blobs (as a cropped body) plus scattered
+/// points, with every 7th point a duplicate of an earlier one (ties in the distances) and
+/// coordinates on a coarse lattice every 5th point (more ties).
+fn blobs(n: usize, seed: u64) -> Vec<[f32; 3]> {
+    let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    let mut next = move || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((state >> 40) as f32) / (1u64 << 24) as f32
+    };
+    let mut cloud: Vec<[f32; 3]> = Vec::with_capacity(n);
+    for i in 0..n {
+        let p = if i % 7 == 6 {
+            cloud[(next() * i as f32) as usize % i]
+        } else if i % 5 == 4 {
+            [0, 1, 2].map(|_| (next() * 8.0).floor() * 0.25)
+        } else {
+            let blob = (next() * 4.0) as usize as f32;
+            [
+                blob * 0.5 + 0.1 * next(),
+                0.3 * next() - blob * 0.2,
+                0.05 * next() + blob,
+            ]
+        };
+        cloud.push(p);
+    }
+    cloud
+}
+
+#[test]
+fn bucketed_farthest_point_sampling_chooses_exactly_the_plain_loops_points() {
+    use gdvae_node::prepare::farthest_point_sampling_plain;
+    for (n, count) in [
+        (200, 64),
+        (1000, 256),
+        (2761, 256),
+        (5000, 1600),
+        (15000, 256),
+        (3000, 2999),
+    ] {
+        for seed in 0..3 {
+            let cloud = blobs(n, seed + n as u64);
+            let fast = farthest_point_sampling(&cloud, count, seed);
+            let plain = farthest_point_sampling_plain(&cloud, count, seed);
+            assert_eq!(fast.len(), count);
+            assert_eq!(fast, plain, "{n} points to {count}, seed {seed}");
+        }
+    }
+    // The lattice alone: nearly every distance ties with others.
+    let cloud = grid(60);
+    assert_eq!(
+        farthest_point_sampling(&cloud, 300, 3),
+        farthest_point_sampling_plain(&cloud, 300, 3)
+    );
+}
+
+#[test]
+fn farthest_point_sampling_of_non_finite_clouds_matches_the_plain_loop() {
+    use gdvae_node::prepare::farthest_point_sampling_plain;
+    let mut cloud = blobs(1000, 9);
+    cloud[10] = [f32::NAN, 0.0, 0.0];
+    cloud[500] = [f32::INFINITY, 1.0, 0.0];
+    // Compared bit for bit: NaN != NaN.
+    let bits = |points: Vec<[f32; 3]>| points.iter().map(|p| p.map(f32::to_bits)).collect::<Vec<_>>();
+    assert_eq!(
+        bits(farthest_point_sampling(&cloud, 100, 1)),
+        bits(farthest_point_sampling_plain(&cloud, 100, 1))
+    );
+}
