@@ -1,11 +1,12 @@
 //! Arbitrary clouds, finite or not, through what every frame goes through: the outlet's
 //! plausibility filter, then the prepare stage (transform, crop, ground, outliers, largest
-//! cluster, sampling to N_p) with the filters switched on by the first byte.
+//! cluster, sampling to N_p) with the filters switched on by the first byte. Farthest point
+//! sampling is also checked against its plain loop: the bucketed one must choose the same points.
 #![no_main]
 
 use gdvae_node::cloud::{drop_implausible, Frame, PointCloud, Unit};
 use gdvae_node::config::{OutlierMethod, PrepareSettings};
-use gdvae_node::prepare::{Preparer, Sampling};
+use gdvae_node::prepare::{farthest_point_sampling, farthest_point_sampling_plain, Preparer, Sampling};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
@@ -19,6 +20,15 @@ fuzz_target!(|data: &[u8]| {
         })
         .collect();
     drop_implausible(&mut points, Unit::Metre);
+    if (switches >> 5) & 3 == 0 {
+        let bits = |p: Vec<[f32; 3]>| p.iter().map(|q| q.map(f32::to_bits)).collect::<Vec<_>>();
+        let seed = switches as u64;
+        assert_eq!(
+            bits(farthest_point_sampling(&points, 64, seed)),
+            bits(farthest_point_sampling_plain(&points, 64, seed)),
+            "bucketed and plain farthest point sampling differ"
+        );
+    }
     let mut settings = PrepareSettings::default();
     settings.remove_ground = switches & 1 != 0;
     settings.auto_ground = switches & 2 != 0;

@@ -217,17 +217,42 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
     }
     let key = |p: &[f32; 3]| p.map(|c| (c / cell).floor() as i64);
     let mut id: CellMap = CellMap::default();
-    let mut members: Vec<Vec<usize>> = Vec::new();
     let mut keys: Vec<[i64; 3]> = Vec::new();
-    for (index, p) in points.iter().enumerate() {
-        let k = key(p);
-        let cell_id = *id.entry(k).or_insert_with(|| {
-            keys.push(k);
-            members.push(Vec::new());
-            keys.len() - 1
-        });
-        members[cell_id].push(index);
+    let cell_of: Vec<usize> = points
+        .iter()
+        .map(|p| {
+            let k = key(p);
+            *id.entry(k).or_insert_with(|| {
+                keys.push(k);
+                keys.len() - 1
+            })
+        })
+        .collect();
+    // Cells numbered in grid order, so that the neighbour loops below walk the grid (and the
+    // points) in order rather than in the sensor's scan order.
+    let mut by_key: Vec<usize> = (0..keys.len()).collect();
+    by_key.sort_unstable_by_key(|&c| keys[c]);
+    let mut rank = vec![0usize; keys.len()];
+    for (r, &c) in by_key.iter().enumerate() {
+        rank[c] = r;
     }
+    let keys: Vec<[i64; 3]> = by_key.iter().map(|&c| keys[c]).collect();
+    id.values_mut().for_each(|c| *c = rank[*c]);
+    // Each cell's points, in cloud order, as one array (cell a: member[start[a]..start[a + 1]]).
+    let mut start = vec![0usize; keys.len() + 1];
+    for &c in &cell_of {
+        start[rank[c] + 1] += 1;
+    }
+    for a in 0..keys.len() {
+        start[a + 1] += start[a];
+    }
+    let mut member = vec![0usize; points.len()];
+    let mut cursor = start.clone();
+    for (index, &c) in cell_of.iter().enumerate() {
+        member[cursor[rank[c]]] = index;
+        cursor[rank[c]] += 1;
+    }
+    let members = |a: usize| &member[start[a]..start[a + 1]];
     // Neighbour lookups in a dense grid over the occupied box when it is small enough (a cropped
     // frame), else in the hash map.
     let low = keys
@@ -291,9 +316,9 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
             if ra == rb {
                 continue;
             }
-            let joined = members[a].iter().any(|&i| {
+            let joined = members(a).iter().any(|&i| {
                 let p = points[i];
-                members[b].iter().any(|&j| {
+                members(b).iter().any(|&j| {
                     let q = points[j];
                     (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2) <= radius_squared
                 })
@@ -306,18 +331,18 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
     // The largest cluster; of equal ones, the one holding the lowest point index.
     let mut size = vec![0usize; keys.len()];
     let mut first = vec![usize::MAX; keys.len()];
-    for (a, cell_members) in members.iter().enumerate() {
+    for a in 0..keys.len() {
         let r = root(&mut parent, a);
-        size[r] += cell_members.len();
-        first[r] = first[r].min(cell_members[0]);
+        size[r] += members(a).len();
+        first[r] = first[r].min(members(a)[0]);
     }
     let best = (0..keys.len())
         .max_by(|&a, &b| size[a].cmp(&size[b]).then(first[b].cmp(&first[a])))
         .expect("at least one cell");
     let mut keep = vec![false; points.len()];
-    for (a, cell_members) in members.iter().enumerate() {
+    for a in 0..keys.len() {
         if root(&mut parent, a) == best {
-            cell_members.iter().for_each(|&i| keep[i] = true);
+            members(a).iter().for_each(|&i| keep[i] = true);
         }
     }
     let before = points.len();
