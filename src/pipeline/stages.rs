@@ -85,8 +85,15 @@ pub(super) fn prepare(rx: Receiver<Ticketed<Ingest>>, tx: Sender<Ticketed<Work>>
     }
 }
 
+/// A stream that sent a frame within this long is expected to send another: the batcher waits for
+/// it (up to `max_wait`) rather than send a batch without it.
+const STREAM_ACTIVE: Duration = Duration::from_secs(1);
+
 /// Groups prepared frames into batches of up to `max_batch`, waiting at most `max_wait` after the
-/// first frame of a batch for more.
+/// first frame of a batch for more. A batch is sent at once when nothing more is queued and it
+/// already holds a frame of every stream active within [`STREAM_ACTIVE`]: the next frame of any of
+/// them is a sensor period away, so waiting would only add latency (one live stream at 30 Hz is
+/// encoded frame by frame, with no `max_wait` in its latency).
 pub(super) fn batcher(
     rx: Receiver<Ticketed<Work>>,
     batches: Sender<Vec<Ticketed<PreparedFrame>>>,
@@ -97,6 +104,7 @@ pub(super) fn batcher(
 ) {
     let mut batch: Vec<Ticketed<PreparedFrame>> = Vec::with_capacity(max_batch);
     let mut deadline = None;
+    let mut last_seen: HashMap<String, Instant> = HashMap::new();
     loop {
         let received = match deadline {
             None => rx.recv().map_err(|_| true),
@@ -109,10 +117,30 @@ pub(super) fn batcher(
                 }
             }
             Ok((ticket, Work::Frame(frame))) => {
+                let now = Instant::now();
                 if batch.is_empty() {
-                    deadline = Some(Instant::now() + max_wait);
+                    deadline = Some(now + max_wait);
+                }
+                match last_seen.get_mut(&frame.origin.stream) {
+                    Some(seen) => *seen = now,
+                    None => {
+                        last_seen.insert(frame.origin.stream.clone(), now);
+                    }
                 }
                 batch.push((ticket, frame));
+                if batch.len() < max_batch && rx.is_empty() {
+                    last_seen.retain(|_, seen| now.duration_since(*seen) < STREAM_ACTIVE);
+                    let complete = last_seen
+                        .keys()
+                        .all(|stream| batch.iter().any(|(_, f)| &f.origin.stream == stream));
+                    if complete {
+                        stats.record_batch(batch.len());
+                        if batches.send(std::mem::take(&mut batch)).is_err() {
+                            return;
+                        }
+                        deadline = None;
+                    }
+                }
             }
             Err(disconnected) => {
                 if !batch.is_empty() {

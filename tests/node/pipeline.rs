@@ -129,6 +129,48 @@ fn replaying_the_sample_publishes_every_frame_in_order_on_zenoh() {
 }
 
 #[test]
+fn a_single_stream_at_its_own_rate_is_encoded_without_waiting_for_a_batch() {
+    // One stream at 30 Hz with a batcher allowed to wait a whole second for 8 frames: waiting
+    // would hold every batch's first frame for 7 sensor periods (233 ms). With the stream's frame
+    // in the batch and nothing else active, the batch goes at once.
+    let endpoint = free_endpoint();
+    let mut config = test_config("single", &endpoint);
+    config.model.max_batch = 8;
+    config.model.max_wait_ms = 1000.0;
+    config.prepare = Config::load(&repo().join("config/replay.toml")).unwrap().prepare;
+    config.sources = vec![source(&format!(
+        "stream = \"walk\"\nkind = \"mcap\"\npath = {:?}\nspeed = 1.0",
+        sample_recording().display().to_string()
+    ))];
+    let node = gdvae_node::publish::open_session(&config).unwrap();
+    let client = client_session(&endpoint);
+    let (_subscriber, received) = collect(&client, "gdvae/single/walk/state");
+    wait_for_subscriber(&node, "gdvae/single/walk/state");
+    let (stop, _, handle) = start(config, node);
+    let mut queue_ms = Vec::new();
+    assert!(
+        wait_until(Duration::from_secs(60), || {
+            queue_ms.extend(
+                received
+                    .try_iter()
+                    .map(|(_, payload)| serde_json::from_slice::<State>(&payload).unwrap().latency.queue_ms),
+            );
+            queue_ms.len() >= 24
+        }),
+        "received {} states",
+        queue_ms.len()
+    );
+    stop.store(true, Ordering::SeqCst);
+    join_within(handle, Duration::from_secs(30));
+    queue_ms.sort_by(f32::total_cmp);
+    let median = queue_ms[queue_ms.len() / 2];
+    assert!(
+        median < 50.0,
+        "median wait for a batch {median} ms (all: {queue_ms:?}); waiting for 8 frames would be 100 ms or more"
+    );
+}
+
+#[test]
 fn stop_drains_the_frames_in_flight_and_status_answers_while_running() {
     let endpoint = free_endpoint();
     let mut config = test_config("drain", &endpoint);
