@@ -110,11 +110,12 @@ pub(super) fn batcher(
             None => rx.recv().map_err(|_| true),
             Some(deadline) => rx.recv_deadline(deadline).map_err(|e| e.is_disconnected()),
         };
-        match received {
+        let (send, disconnected) = match received {
             Ok((ticket, Work::Rejected(r))) => {
                 if done.send((ticket, Done::Rejected(r))).is_err() {
                     return;
                 }
+                continue;
             }
             Ok((ticket, Work::Frame(frame))) => {
                 let now = Instant::now();
@@ -128,40 +129,29 @@ pub(super) fn batcher(
                     }
                 }
                 batch.push((ticket, frame));
-                if batch.len() < max_batch && rx.is_empty() {
-                    last_seen.retain(|_, seen| now.duration_since(*seen) < STREAM_ACTIVE);
-                    let complete = last_seen
-                        .keys()
-                        .all(|stream| batch.iter().any(|(_, f)| &f.origin.stream == stream));
-                    if complete {
-                        stats.record_batch(batch.len());
-                        if batches.send(std::mem::take(&mut batch)).is_err() {
-                            return;
-                        }
-                        deadline = None;
-                    }
-                }
+                let complete = batch.len() >= max_batch
+                    || rx.is_empty() && {
+                        last_seen.retain(|_, seen| now.duration_since(*seen) < STREAM_ACTIVE);
+                        last_seen
+                            .keys()
+                            .all(|stream| batch.iter().any(|(_, f)| &f.origin.stream == stream))
+                    };
+                (complete, false)
             }
-            Err(disconnected) => {
-                if !batch.is_empty() {
-                    stats.record_batch(batch.len());
-                    if batches.send(std::mem::take(&mut batch)).is_err() {
-                        return;
-                    }
-                }
-                deadline = None;
-                if disconnected {
+            // The deadline passed, or every sender is gone.
+            Err(disconnected) => (true, disconnected),
+        };
+        if send {
+            if !batch.is_empty() {
+                stats.record_batch(batch.len());
+                if batches.send(std::mem::take(&mut batch)).is_err() {
                     return;
                 }
-                continue;
-            }
-        }
-        if batch.len() >= max_batch {
-            stats.record_batch(batch.len());
-            if batches.send(std::mem::take(&mut batch)).is_err() {
-                return;
             }
             deadline = None;
+        }
+        if disconnected {
+            return;
         }
     }
 }
