@@ -7,7 +7,10 @@ stands apart from its reference, against the same distance at every position wit
 - the earlier frames seen from about the same side (the subject's yaw relative to the line of
   sight within a tolerance, from the ground truth or from the node's own filtered yaw and
   centre_m), falling back to the last 10 frames: if z_I wandered with the view, this would
-  remove it.
+  remove it;
+and, to read those: how far each subject's view sweeps while it is seen (a same-side reference
+can only help a subject seen from one side twice), and how far z_I wanders between 10-frame
+windows adjacent and 80 frames apart, for subjects turning in place and walking.
 
     .venv/bin/python bench/identity_reference.py SET-states.jsonl...
 
@@ -82,6 +85,34 @@ def same_side(tolerance):
     return reference
 
 
+def view_sweeps(path):
+    sweeps = []
+    for rows in streams(path, True).values():
+        subject = [r[0] for r in rows]
+        views = np.unwrap(np.array([r[4] for r in rows]))
+        starts = [0] + [i for i in range(1, len(rows)) if subject[i] != subject[i - 1]]
+        for a, b in zip(starts, starts[1:] + [len(rows)]):
+            sweeps.append(np.degrees(views[a:b].max() - views[a:b].min()))
+    return sweeps
+
+
+def wander(path):
+    apart = {}
+    for stream, rows in streams(path, True).items():
+        motion = stream.split("-")[0]
+        subject = [r[0] for r in rows]
+        means = np.stack([r[2] for r in rows])
+        variances = np.stack([r[3] for r in rows])
+        window = lambda t: fuse(means[t:t + W], variances[t:t + W])
+        starts = [0] + [i for i in range(1, len(rows)) if subject[i] != subject[i - 1]]
+        for a, b in zip(starts, starts[1:] + [len(rows)]):
+            for t in range(a + 90, b - W + 1, 5):
+                adjacent, far = apart.setdefault(motion, ([], []))
+                adjacent.append(np.linalg.norm(window(t) - window(t - 10)))
+                far.append(np.linalg.norm(window(t) - window(t - 90)))
+    return {m: (np.median(a), np.median(f)) for m, (a, f) in apart.items()}
+
+
 if __name__ == "__main__":
     for path in sys.argv[1:]:
         print(path)
@@ -91,3 +122,9 @@ if __name__ == "__main__":
             for tolerance in (0.15, 0.3, 0.6):
                 print(f"  same side within {np.degrees(tolerance):.0f} deg ({'true' if truth else 'filtered'} yaw): "
                       f"{separability(path, same_side(tolerance), truth)}")
+        sweeps = view_sweeps(path)
+        print(f"  view sweep while one subject is seen: {min(sweeps):.0f}-{max(sweeps):.0f} deg "
+              f"(median {np.median(sweeps):.0f}) over {len(sweeps)} appearances")
+        for motion, (adjacent, far) in sorted(wander(path).items()):
+            print(f"  z_I wander ({motion}): median distance of 10-frame windows adjacent {adjacent:.3f}, "
+                  f"80 frames apart {far:.3f}")
