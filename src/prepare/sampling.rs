@@ -105,17 +105,7 @@ impl Buckets {
         split(points, &mut order, 0, &mut ranges);
         let boxes = ranges
             .iter()
-            .map(|&(start, end)| {
-                order[start..end]
-                    .iter()
-                    .fold(([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]), |(low, high), &i| {
-                        let p = points[i as usize];
-                        (
-                            [0, 1, 2].map(|a| low[a].min(p[a])),
-                            [0, 1, 2].map(|a| high[a].max(p[a])),
-                        )
-                    })
-            })
+            .map(|&(start, end)| bounds(points, &order[start..end]))
             .collect();
         Self {
             xs: order.iter().map(|&i| points[i as usize][0]).collect(),
@@ -149,22 +139,35 @@ impl Buckets {
                 let d = (x - c[0]) * (x - c[0]) + (y - c[1]) * (y - c[1]) + (z - c[2]) * (z - c[2]);
                 *n = n.min(d);
             }
-            let mut best = (f32::NEG_INFINITY, u32::MAX);
-            for (n, &i) in nearest.iter().zip(&self.index[start..end]) {
-                if *n > best.0 || (*n == best.0 && i < best.1) {
-                    best = (*n, i);
-                }
-            }
-            self.farthest[b] = best;
+            self.farthest[b] = farthest(nearest.iter().copied().zip(self.index[start..end].iter().copied()));
         }
-        let mut best = (f32::NEG_INFINITY, u32::MAX);
-        for &(n, i) in &self.farthest {
-            if n > best.0 || (n == best.0 && i < best.1) {
-                best = (n, i);
-            }
-        }
-        best.1 as usize
+        farthest(self.farthest.iter().copied()).1 as usize
     }
+}
+
+/// The largest distance of (distance, cloud index) pairs; of equal ones, the lowest index (the
+/// plain loop's first).
+fn farthest(candidates: impl Iterator<Item = (f32, u32)>) -> (f32, u32) {
+    candidates.fold((f32::NEG_INFINITY, u32::MAX), |best, (n, i)| {
+        if n > best.0 || (n == best.0 && i < best.1) {
+            (n, i)
+        } else {
+            best
+        }
+    })
+}
+
+/// The bounding box of the points `order` names.
+fn bounds(points: &[[f32; 3]], order: &[u32]) -> ([f32; 3], [f32; 3]) {
+    order
+        .iter()
+        .fold(([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]), |(low, high), &i| {
+            let p = points[i as usize];
+            (
+                [0, 1, 2].map(|a| low[a].min(p[a])),
+                [0, 1, 2].map(|a| high[a].max(p[a])),
+            )
+        })
 }
 
 /// Splits `order[offset..]` at the median of its widest axis until at most [`BUCKET`] points
@@ -174,15 +177,7 @@ fn split(points: &[[f32; 3]], order: &mut [u32], offset: usize, ranges: &mut Vec
         ranges.push((offset, offset + order.len()));
         return;
     }
-    let (low, high) = order
-        .iter()
-        .fold(([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]), |(low, high), &i| {
-            let p = points[i as usize];
-            (
-                [0, 1, 2].map(|a| low[a].min(p[a])),
-                [0, 1, 2].map(|a| high[a].max(p[a])),
-            )
-        });
+    let (low, high) = bounds(points, order);
     let axis = (0..3)
         .max_by(|&a, &b| (high[a] - low[a]).total_cmp(&(high[b] - low[b])))
         .unwrap_or(0);
