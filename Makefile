@@ -1,5 +1,5 @@
 # The project's entry points. `make test` is what CI runs (.ci/run).
-.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking fuzz soak eval-split
+.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking fuzz soak eval-split device-job
 
 VENV := .venv
 PYTHON := $(VENV)/bin/python
@@ -42,6 +42,20 @@ bench-tracking: onnxruntime node sim
 EVAL_DIR ?= /work/data/sim-eval
 eval-split: sim
 	./target/release/sim dataset --out $(EVAL_DIR) --subjects 300 --poses 1 --split 0,0,1 --seed 9000
+
+# What the GPU recipe's device job (models/device/run.sh) carries: .device/wheels (what the device's
+# Python lacks) and .device/spectra (the spectra of DEVICE_DATA, the dataset the job regenerates
+# there from the same seed). Then: run with carry [".device", "target/release/sim"] and the command
+# `bash models/device/run.sh` (models/README.md, "Training on a lent GPU").
+DEVICE_DATA ?= /work/data/sim-cpu2
+device-job: venv sim
+	test -d $(DEVICE_DATA) || ./target/release/sim dataset --out $(DEVICE_DATA) --subjects 60 --poses 20 --seed 1
+	$(PYTHON) -m gdvae spectra $(DEVICE_DATA) --count 22 >/dev/null
+	mkdir -p .device/wheels .device/spectra
+	cp $(DEVICE_DATA)/.spectra/*.npy .device/spectra/
+	$(PYTHON) -m pip download --quiet --no-deps --only-binary=:all: --python-version 3.12 \
+		--implementation cp --platform manylinux2014_x86_64 -d .device/wheels trimesh==5.2.0
+	du -sh .device
 
 # Overload soak (README "Faults and overload"): a live feed at SOAK_FACTOR times the node's
 # capacity for SOAK_SECONDS against the real binary; prints the RSS series, drops and latency.

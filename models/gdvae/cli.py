@@ -69,7 +69,7 @@ def train_command(args) -> int:
     from .data import load_dataset
     from .spectral_report import dataset_spectra
     from .spectrum import SpectrumCache
-    from .train import recipe, train
+    from .train import StageLimits, recipe, train
 
     chosen = recipe(args.recipe, regime=args.regime, kind=args.ae)
     if args.ae_iterations is not None:
@@ -96,10 +96,32 @@ def train_command(args) -> int:
         raise SystemExit("--continue-ae goes with --init-from (the AE to continue)")
     if args.continue_ae < 0:
         raise SystemExit(f"--continue-ae {args.continue_ae}: must be a number of iterations >= 0")
+    device = training_device(args.device)
+    limits = StageLimits(ae_seconds=None if args.ae_minutes is None else 60.0 * args.ae_minutes,
+                         vae_seconds=None if args.vae_minutes is None else 60.0 * args.vae_minutes)
     train(dataset, spectra, args.out, chosen, stop_after=args.stop_after, init_from=args.init_from,
-          rebuild_bank=args.rebuild_bank, continue_ae=args.continue_ae)
+          rebuild_bank=args.rebuild_bank, continue_ae=args.continue_ae, device=device, limits=limits,
+          loader_workers=args.loader_workers)
     log.info("training finished: %s", args.out)
     return 0
+
+
+def training_device(name: str) -> str:
+    """The torch device to train on; a clear error when it is not there (no silent CPU fallback:
+    a GPU job that quietly ran on a CPU would spend its whole budget for a fraction of the work)."""
+    import torch
+
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise SystemExit(f"--device {name}: this machine's torch sees no CUDA device")
+    try:
+        torch.empty(0, device=name)
+    except (RuntimeError, ValueError) as error:
+        raise SystemExit(f"--device {name}: {error}") from None
+    if name.startswith("cuda"):
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+        log.info("training on %s (%s)", name, torch.cuda.get_device_name(torch.device(name)))
+    return name
 
 
 def finite_or_null(value):
@@ -167,6 +189,25 @@ def evaluate_command(args) -> int:
     return 0
 
 
+def trained_iterations(run: Path, chosen) -> dict:
+    """What RUN/stages.json says the stages did, where a time budget ended them before the
+    recipe's count (the iterations actually run), and the device each trained on."""
+    path = run / "stages.json"
+    if not path.exists():
+        return {}
+    stages = json.loads(path.read_text())
+    found = {}
+    pretrain = chosen.ae_pretrain_iterations if chosen.ae.supervised else 0
+    for stage, key, offset in (("ae", "ae_iterations", pretrain), ("vae", "vae_iterations", 0)):
+        record = stages.get(stage)
+        if record is None:
+            continue
+        if record.get("ended_by_time_budget"):
+            found[key] = max(0, record["iterations"] - offset)
+        found[f"{stage}_device"] = record.get("device", "cpu")
+    return found
+
+
 def export_command(args) -> int:
     from .export import write_bundle
     from .train import dataset_summary, load_run
@@ -190,6 +231,7 @@ def export_command(args) -> int:
     training = {**summary, "ae_iterations": chosen.ae_iterations, "vae_iterations": chosen.vae_iterations,
                 "ae_batch": chosen.ae_batch, "vae_batch": chosen.vae_batch, "partial_views": chosen.partial_views,
                 "bank_partial_views": chosen.bank_view_share()}
+    training.update(trained_iterations(Path(args.run), chosen))
     calibration = None
     if args.calibrate:
         from .data import load_dataset
@@ -245,7 +287,7 @@ def main(argv=None) -> int:
     training = commands.add_parser("train", help="train (or resume) the AE and the VAE on a mesh dataset")
     training.add_argument("dataset", help="dataset folder (meshes, optional ground_truth.jsonl and splits.json)")
     training.add_argument("--out", required=True, help="run folder (checkpoint, logs); rerun to resume")
-    training.add_argument("--recipe", default="cpu", choices=["cpu", "paper", "smoke"])
+    training.add_argument("--recipe", default="cpu", choices=["cpu", "gpu", "paper", "smoke"])
     training.add_argument("--regime", default="gdvae++", choices=["gdvae++", "fo"])
     training.add_argument("--ae", default="ftl", choices=["ftl", "std"], help="autoencoder architecture")
     training.add_argument("--unsupervised", action="store_true", help="no rotation supervision (unaligned data)")
@@ -268,6 +310,14 @@ def main(argv=None) -> int:
                           help="with --init-from: reuse only the AE and encode a new code bank with this run's "
                                "bank settings (recipe.bank_copies, recipe.bank_partial_views)")
     training.add_argument("--limit", type=int, help="use only the first N meshes")
+    training.add_argument("--device", default="cpu", help="torch device to train on: cpu (default), cuda, cuda:1")
+    training.add_argument("--ae-minutes", type=float, metavar="M",
+                          help="end the AE stage after M minutes of training even if its iterations are not done "
+                               "(recorded in RUN/stages.json)")
+    training.add_argument("--vae-minutes", type=float, metavar="M", help="the same for the VAE stage")
+    training.add_argument("--loader-workers", type=int, default=0, metavar="N",
+                          help="processes that sample AE batches ahead of the training step (default 0: in this "
+                               "process; on a GPU, most of the machine's cores)")
     training.set_defaults(handler=train_command)
 
     evaluation = commands.add_parser("evaluate", help="the paper's metrics of a trained run on held-out shapes")

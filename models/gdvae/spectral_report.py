@@ -42,11 +42,11 @@ def dataset_spectra(dataset: MeshDataset, count: int, cache: SpectrumCache, prog
         for index, values in enumerate(results):
             spectra[index] = values
             now = time.monotonic()
-        if progress and (now - last > 5.0 or index + 1 == len(dataset.meshes)):
-            rate = (index + 1) / max(now - started, 1e-9)
-            log.info("spectra %d/%d (%.1f/s, ETA %.0f s)", index + 1, len(spectra), rate,
-                     (len(spectra) - index - 1) / rate)
-            last = now
+            if progress and (now - last > 5.0 or index + 1 == len(dataset.meshes)):
+                rate = (index + 1) / max(now - started, 1e-9)
+                log.info("spectra %d/%d (%.1f/s, ETA %.0f s)", index + 1, len(spectra), rate,
+                         (len(spectra) - index - 1) / rate)
+                last = now
     return spectra
 
 

@@ -7,6 +7,11 @@ per progress report). Stages:
   2. bank  - the frozen AE encodes every training mesh under several random rotations, with its
              spectrum: the VAE's training set of (q, x_c, lambda);
   3. vae   - the latent VAE on the bank.
+
+Training runs on any torch device (`device`: "cpu", "cuda"); checkpoints are always read back onto
+the CPU, so a run trained on a GPU is evaluated and exported on a machine without one. `StageLimits`
+ends a stage after a wall-clock budget (a lent accelerator's minutes), and `RUN/stages.json` records
+what each stage did: iterations, seconds, device, and whether its budget ended it.
 """
 
 from __future__ import annotations
@@ -27,6 +32,20 @@ from .geometry import matrix_to_quaternion, quaternion_to_matrix, random_rotatio
 from .vae import LatentVAE, VAEConfig, vae_loss
 
 log = logging.getLogger(__name__)
+
+
+@dataclass
+class StageLimits:
+    """Wall-clock budgets per stage, in seconds (None: run the recipe's iterations). A stage that
+    reaches its budget ends there, as if its iterations were done, and says so in stages.json."""
+
+    ae_seconds: float | None = None
+    vae_seconds: float | None = None
+
+    def validate(self) -> None:
+        for name, value in (("AE", self.ae_seconds), ("VAE", self.vae_seconds)):
+            if value is not None and not value > 0:
+                raise ValueError(f"{name} time budget {value} s: must be positive")
 
 
 @dataclass
@@ -86,13 +105,25 @@ def recipe(name: str, regime: str = "gdvae++", kind: str = "ftl") -> Recipe:
         return Recipe("cpu", ae, replace(vae, latent=ae.latent, width_scale=0.25, flow_hidden=400),
                       ae_iterations=7700, ae_pretrain_iterations=2000, ae_batch=24, ae_learning_rate=1e-3,
                       vae_iterations=3000, vae_batch=256)
+    if name == "gpu":
+        # The node's model size (the cpu recipe's widths and N_p: what the node runs at 30 Hz and
+        # what comes back through the device tool, whose files are limited to 16 MiB each; the
+        # paper's STD decoder alone is about 150 MB) with a batch four times the CPU recipe's and
+        # iterations bounded by the stage budgets (`--ae-minutes`, `--vae-minutes`) rather than by
+        # count. models/README.md, "Training on a lent GPU".
+        cpu = recipe("cpu", regime, kind)
+        return replace(cpu, name="gpu", ae_iterations=150_000, ae_batch=96, vae_iterations=40_000,
+                       checkpoint_seconds=60.0)
     if name == "smoke":
         ae = AEConfig(kind=kind, points=128, latent=48, rotation_hidden=(16, 32), shape_hidden=(16, 32),
                       decoder_width=32, copies=2)
         return Recipe("smoke", ae, replace(vae, latent=ae.latent, width_scale=0.02, flow_layers=3, n_extrinsic=4),
                       ae_iterations=4, ae_pretrain_iterations=2, ae_batch=4, bank_copies=2,
                       vae_iterations=4, vae_batch=16, checkpoint_seconds=0.0)
-    raise ValueError(f"unknown recipe {name!r} (known: paper, cpu, smoke)")
+    raise ValueError(f"unknown recipe {name!r} (known: {', '.join(RECIPES)})")
+
+
+RECIPES = ("cpu", "gpu", "paper", "smoke")
 
 
 def load_run(run_dir: str | Path) -> tuple[Recipe, Autoencoder, LatentVAE | None, dict]:
@@ -106,7 +137,7 @@ def load_run(run_dir: str | Path) -> tuple[Recipe, Autoencoder, LatentVAE | None
     ae_config = AEConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in raw.pop("ae").items()})
     vae_config = VAEConfig(**raw.pop("vae"))
     chosen = Recipe(ae=ae_config, vae=vae_config, **raw)
-    state = torch.load(checkpoint_path, weights_only=False)
+    state = torch.load(checkpoint_path, weights_only=False, map_location="cpu")
     ae = Autoencoder(ae_config)
     ae.load_state_dict(state["ae"])
     ae.eval()
@@ -234,14 +265,22 @@ class Plateau:
 
 def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen: Recipe,
           stop_after: str | None = None, init_from: str | Path | None = None, rebuild_bank: bool = False,
-          continue_ae: int = 0) -> dict:
+          continue_ae: int = 0, device: str = "cpu", limits: StageLimits | None = None,
+          loader_workers: int = 0) -> dict:
     """Runs (or resumes) the three stages. Returns the trained modules.
 
     `init_from`: another run whose AE and code bank this run reuses (it starts at the VAE stage),
     so that two VAE regimes can be compared on exactly the same autoencoder. `rebuild_bank`: reuse
     only its AE and encode a new bank with this recipe's bank settings. `continue_ae`: train the
     source's AE that many more iterations first (an undertrained AE; the bank is then rebuilt).
+    `device`: where the networks train; `limits`: per-stage wall-clock budgets; `loader_workers`:
+    processes that sample AE batches ahead of the training step (0: in this process, as before).
     """
+    limits = limits or StageLimits()
+    limits.validate()
+    device = torch.device(device)
+    if loader_workers < 0:
+        raise ValueError(f"loader workers {loader_workers}: must be >= 0")
     if chosen.partial_views > 0 and not chosen.ae.supervised:
         raise ValueError("partial views need the supervised AE (its target is the whole canonical cloud)")
     run_dir = Path(run_dir)
@@ -265,10 +304,10 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     checkpoint_path = run_dir / "checkpoint.pt"
     imported = False
     if checkpoint_path.exists():
-        state = torch.load(checkpoint_path, weights_only=False)
+        state = torch.load(checkpoint_path, weights_only=False, map_location="cpu")
         log.info("resuming from %s: stage %s, iteration %d", checkpoint_path, state["stage"], state["iteration"])
     elif init_from is not None:
-        source = torch.load(Path(init_from) / "checkpoint.pt", weights_only=False)
+        source = torch.load(Path(init_from) / "checkpoint.pt", weights_only=False, map_location="cpu")
         imported = "imported_from" in source  # batch norms folded by the export (import_bundle.py)
         if source.get("stage") == "ae":
             raise ValueError(f"{init_from}: its AE stage has not finished; nothing to start from")
@@ -293,6 +332,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     ae = Autoencoder(chosen.ae)
     if "ae" in state:
         ae.load_state_dict(state["ae"])
+    stages = StageRecord(run_dir / "stages.json", str(device))
     sampler = PointSampler(dataset, train_indices, chosen.ae.points, chosen.seed + state["iteration"])
     if imported and state["stage"] == "ae":
         from .import_bundle import restore_batch_norms
@@ -306,15 +346,16 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         torch.save({**extra, "ae": ae.state_dict()}, temporary)
         temporary.replace(checkpoint_path)
 
+    ae.to(device)
     if state["stage"] == "ae":
-        train_ae(ae, sampler, chosen, state, save, run_dir)
+        train_ae(ae, sampler, chosen, state, save, run_dir, device, limits.ae_seconds, loader_workers, stages)
         state = {"stage": "bank", "iteration": 0}
         save(state)
     if stop_after == "ae":
         return {"ae": ae}
 
     if state["stage"] == "bank":
-        bank = encode_bank(ae, sampler, spectra[train_indices], chosen)
+        bank = encode_bank(ae, sampler, spectra[train_indices], chosen, device)
         state = {"stage": "vae", "iteration": 0, "bank": bank}
         save(state)
     if stop_after == "bank":
@@ -327,13 +368,61 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     else:
         vae.flow.input.fit(bank["spectrum"])
         vae.code_norm.fill_(float(bank["x_c"].pow(2).sum(-1).mean()))
+    vae.to(device)
     if state["stage"] == "vae":
-        train_vae(vae, bank, chosen, state, lambda extra: save({**extra, "bank": bank}), run_dir, len(train_indices))
+        train_vae(vae, bank, chosen, state, lambda extra: save({**extra, "bank": bank}), run_dir, len(train_indices),
+                  device, limits.vae_seconds, stages)
         save({"stage": "done", "iteration": 0, "bank": bank, "vae": vae.state_dict()})
-    return {"ae": ae.eval(), "vae": vae.eval()}
+    return {"ae": ae.eval().cpu(), "vae": vae.eval().cpu()}
 
 
-def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir) -> None:
+class StageRecord:
+    """RUN/stages.json: per stage, the iterations it ran to, its seconds in this process, the
+    device, and whether its time budget ended it (merged over resumed runs)."""
+
+    def __init__(self, path: Path, device: str):
+        self.path, self.device = path, device
+        self.stages = json.loads(path.read_text()) if path.exists() else {}
+
+    def finish(self, stage: str, iteration: int, planned: int, seconds: float, budget_ended: bool) -> None:
+        previous = self.stages.get(stage, {})
+        self.stages[stage] = {
+            "iterations": iteration, "planned": planned, "device": self.device,
+            "seconds": round(previous.get("seconds", 0.0) + seconds, 1), "ended_by_time_budget": budget_ended,
+        }
+        self.path.write_text(json.dumps(self.stages, indent=2))
+
+
+class AEBatches(torch.utils.data.IterableDataset):
+    """Endless AE training batches: canonical clouds and, with partial views, each copy's view.
+    With loader workers each process draws from its own generator (seeded by the run's seed, the
+    iteration it started at and its worker number), so sampling keeps up with an accelerator."""
+
+    def __init__(self, sampler: PointSampler, batch: int, copies: int, partial: float, seed: int):
+        self.sampler, self.batch, self.copies, self.partial, self.seed = sampler, batch, copies, partial, seed
+
+    def __iter__(self):
+        worker = torch.utils.data.get_worker_info()
+        if worker is not None:
+            self.sampler.rng = np.random.default_rng([self.seed, worker.id])
+        while True:
+            indices, clouds = self.sampler.batch(self.batch)
+            views = self.sampler.views(indices, self.copies, self.partial) if self.partial > 0 else None
+            yield clouds, views
+
+
+def ae_batches(sampler: PointSampler, chosen: Recipe, copies: int, start: int, workers: int):
+    """An iterator over AE batches: in this process (workers = 0, the sampler's own generator, as
+    before loader workers existed) or from `workers` processes."""
+    stream = AEBatches(sampler, chosen.ae_batch, copies, chosen.partial_views, chosen.seed + start)
+    if workers == 0:
+        return iter(stream)
+    loader = torch.utils.data.DataLoader(stream, batch_size=None, num_workers=workers, prefetch_factor=4,
+                                         collate_fn=lambda item: item, multiprocessing_context="fork")
+    return iter(loader)
+
+
+def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir, device, budget_seconds, workers, stages) -> None:
     optimizer = torch.optim.Adam(ae.parameters(), lr=chosen.ae_learning_rate)
     schedule = Plateau(optimizer, chosen.ae_min_learning_rate)
     if "optimizer" in state:
@@ -343,11 +432,19 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir) -> None:
     total = pretrain + chosen.ae_iterations
     start = state["iteration"]
     progress = Progress("ae", total, run_dir / "log.jsonl", first_iteration=start)
-    last_save = time.monotonic()
+    last_save = started = time.monotonic()
+    batches = ae_batches(sampler, chosen, ae.config.copies, start, workers)
     ae.train()
+    iteration, budget_ended = start, False
     for iteration in range(start, total):
-        indices, clouds = sampler.batch(chosen.ae_batch)
-        views = sampler.views(indices, ae.config.copies, chosen.partial_views) if chosen.partial_views > 0 else None
+        if budget_seconds is not None and time.monotonic() - started > budget_seconds:
+            log.info("ae: time budget of %.0f s reached at iteration %d of %d; the stage ends here",
+                     budget_seconds, iteration, total)
+            budget_ended = True
+            break
+        clouds, views = next(batches)
+        clouds = clouds.to(device, non_blocking=True)
+        views = views.to(device, non_blocking=True) if views is not None else None
         losses, _ = ae_loss(ae, clouds, rotation_only=iteration < pretrain, views=views)
         optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
@@ -359,15 +456,20 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir) -> None:
             save({"stage": "ae", "iteration": iteration + 1, "optimizer": optimizer.state_dict(),
                   "schedule": schedule.state_dict()})
             last_save = time.monotonic()
+    else:
+        iteration = total
+    stages.finish("ae", iteration, total, time.monotonic() - started, budget_ended)
     ae.eval()
 
 
 @torch.no_grad()
-def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe) -> dict:
+def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, device=None) -> dict:
     """(q, x_c, lambda) for every training mesh under `bank_copies` random rotations; the
     rotation is the true one for a supervised AE with `bank_true_rotation`, else E_r's. A share
-    `bank_partial_views` of the copies are camera-like views, with the whole mesh's spectrum."""
+    `bank_partial_views` of the copies are camera-like views, with the whole mesh's spectrum.
+    Encoded on `device` (default: the AE's), kept on the CPU."""
     ae.eval()
+    device = device or next(ae.parameters()).device
     partial = chosen.bank_view_share()
     if not 0.0 <= partial <= 1.0:
         raise ValueError(f"bank_partial_views {partial}: must be within 0..1")
@@ -375,22 +477,24 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe) 
     for index in range(len(sampler.meshes)):
         clouds = sampler.views(np.full(chosen.bank_copies, index), 1, partial)
         rotations = random_rotation_matrices(len(clouds), full=chosen.ae.full_rotations)
-        inputs = rotate(clouds, rotations)
+        inputs = rotate(clouds, rotations).to(device)
+        rotations = rotations.to(device)
         if chosen.bank_true_rotation and ae.config.supervised:
             q, used = matrix_to_quaternion(rotations), rotations
         else:
             q = ae.encode_rotation(inputs)
             used = quaternion_to_matrix(q)
         x_c, _ = ae.encode_shape(inputs, used)
-        qs.append(q)
-        codes.append(x_c)
+        qs.append(q.cpu())
+        codes.append(x_c.cpu())
         spectrum.append(torch.from_numpy(np.repeat(spectra[index][None], len(clouds), 0)).float())
     log.info("bank: %d training meshes x %d rotations encoded (%.0f%% partial views)", len(sampler.meshes),
              chosen.bank_copies, 100 * partial)
     return {"q": torch.cat(qs), "x_c": torch.cat(codes), "spectrum": torch.cat(spectrum)}
 
 
-def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int) -> None:
+def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, device=None, budget_seconds=None,
+              stages=None) -> None:
     optimizer = torch.optim.Adam(vae.parameters(), lr=chosen.vae_learning_rate, weight_decay=chosen.vae_weight_decay)
     schedule = Plateau(optimizer, chosen.vae_min_learning_rate)
     if "optimizer" in state:
@@ -400,15 +504,23 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int) -> N
     total = chosen.vae_iterations
     start = state["iteration"]
     progress = Progress("vae", total, run_dir / "log.jsonl", first_iteration=start)
-    last_save = time.monotonic()
+    last_save = started = time.monotonic()
+    device = device or torch.device("cpu")
     size = len(bank["q"])
+    on_device = {key: bank[key].to(device) for key in ("q", "x_c", "spectrum")}
     vae.train()
+    iteration, budget_ended = start, False
     for iteration in range(start, total):
-        batch = torch.randint(0, size, (min(chosen.vae_batch, size),), generator=generator)
+        if budget_seconds is not None and time.monotonic() - started > budget_seconds:
+            log.info("vae: time budget of %.0f s reached at iteration %d of %d; the stage ends here",
+                     budget_seconds, iteration, total)
+            budget_ended = True
+            break
+        batch = torch.randint(0, size, (min(chosen.vae_batch, size),), generator=generator).to(device)
         warmup = vae.config.beta_warmup_iterations
         beta_scale = min(1.0, iteration / warmup) if warmup > 0 else 1.0
-        losses = vae_loss(vae, bank["q"][batch], bank["x_c"][batch], bank["spectrum"][batch], dataset_size=size,
-                          beta_scale=beta_scale)
+        losses = vae_loss(vae, on_device["q"][batch], on_device["x_c"][batch], on_device["spectrum"][batch],
+                          dataset_size=size, beta_scale=beta_scale)
         optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
         torch.nn.utils.clip_grad_norm_(vae.parameters(), 100.0)
@@ -419,4 +531,8 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int) -> N
             save({"stage": "vae", "iteration": iteration + 1, "vae": vae.state_dict(),
                   "optimizer": optimizer.state_dict(), "schedule": schedule.state_dict()})
             last_save = time.monotonic()
+    else:
+        iteration = total
+    if stages is not None:
+        stages.finish("vae", iteration, total, time.monotonic() - started, budget_ended)
     vae.eval()

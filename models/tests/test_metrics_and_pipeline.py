@@ -289,3 +289,59 @@ def test_a_run_still_training_its_vae_is_not_exported(tiny_dataset, tmp_path, ca
     assert main(["export", str(run), "--out", str(tmp_path / "bundle")]) == 2
     assert "has not finished (stage 'vae', iteration 2)" in capsys.readouterr().err
     assert not (tmp_path / "bundle" / "manifest.json").exists()
+
+
+def test_loader_workers_and_time_budgets_end_stages_and_say_so(tiny_dataset, tmp_path):
+    """Batches sampled in worker processes train as in-process ones do; a stage whose wall-clock
+    budget runs out ends there, stages.json says so, and the bundle records the iterations run."""
+    run = tmp_path / "budgeted"
+    assert main(["train", str(tiny_dataset), "--out", str(run), "--recipe", "smoke", "--partial-views", "0.5",
+                 "--ae-iterations", "100000", "--ae-minutes", "0.05", "--vae-iterations", "100000",
+                 "--vae-minutes", "0.03", "--loader-workers", "2", "--device", "cpu"]) == 0
+    stages = json.loads((run / "stages.json").read_text())
+    assert stages["ae"]["ended_by_time_budget"] and stages["vae"]["ended_by_time_budget"]
+    assert 2 < stages["ae"]["iterations"] < 100_000 and 0 < stages["vae"]["iterations"] < 100_000
+    assert stages["ae"]["device"] == "cpu" and stages["ae"]["seconds"] >= 3.0
+    bundle = tmp_path / "bundle"
+    assert main(["export", str(run), "--out", str(bundle)]) == 0
+    training = json.loads((bundle / "manifest.json").read_text())["training"]
+    assert training["ae_iterations"] == stages["ae"]["iterations"] - 2  # less the smoke recipe's pretraining
+    assert training["vae_iterations"] == stages["vae"]["iterations"] and training["ae_device"] == "cpu"
+
+    whole = tmp_path / "whole"  # no budget: the recipe's count, not ended by time
+    assert main(["train", str(tiny_dataset), "--out", str(whole), "--recipe", "smoke", "--loader-workers", "1"]) == 0
+    stages = json.loads((whole / "stages.json").read_text())
+    assert stages["ae"] == {**stages["ae"], "iterations": 6, "planned": 6, "ended_by_time_budget": False}
+
+
+def test_a_device_that_is_not_there_is_refused_before_training(tiny_dataset, tmp_path):
+    import torch
+
+    run = tmp_path / "nowhere"
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    with pytest.raises(SystemExit, match="--device cuda: this machine's torch sees no CUDA device"):
+        main(["train", str(tiny_dataset), "--out", str(run), "--recipe", "smoke", "--device", "cuda"])
+    with pytest.raises(SystemExit, match="--device tpu"):
+        main(["train", str(tiny_dataset), "--out", str(run), "--recipe", "smoke", "--device", "tpu"])
+    assert not (run / "checkpoint.pt").exists()
+
+
+def test_a_checkpoint_written_on_another_device_is_read_onto_the_cpu(tiny_dataset, tmp_path, monkeypatch):
+    """load_run maps every tensor onto the CPU (a GPU run is evaluated and exported without one)."""
+    import torch
+
+    from gdvae import train as training
+
+    run = tmp_path / "run"
+    assert main(["train", str(tiny_dataset), "--out", str(run), "--recipe", "smoke"]) == 0
+    seen = {}
+    real_load = torch.load
+
+    def load(*args, **kwargs):
+        seen.update(kwargs)
+        return real_load(*args, **kwargs)
+
+    monkeypatch.setattr(training.torch, "load", load)
+    training.load_run(run)
+    assert seen.get("map_location") == "cpu"

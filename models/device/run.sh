@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# The GPU recipe as one job for a lent device machine (models/README.md, "Training on a lent GPU").
+#
+# Why a script: a lent accelerator comes for minutes, bare, with no network, so everything the job
+# needs travels with it (`make device-job` prepares .device/ here: the wheels its Python lacks and
+# the dataset's spectra) and everything it makes comes back through $OUT (at most 8 files of
+# 16 MiB): the bundle (5 files), train.log, log.jsonl and run.json (recipe and stages.json).
+# Run there from the repository root, carrying `.device` and `target/release/sim`:
+#     bash models/device/run.sh
+# The same script runs on a CPU at smoke size (`DEVICE=cpu RECIPE=smoke ...`): that is its test.
+set -euo pipefail
+
+OUT=${OUT:?set OUT to the folder whose files come back}
+DEVICE=${DEVICE:-cuda}
+RECIPE=${RECIPE:-gpu}
+AE_MINUTES=${AE_MINUTES:-4.5}      # the stage budgets; with the machine's start, data and export
+VAE_MINUTES=${VAE_MINUTES:-1}      # about 8 of the 15 lent minutes and inside one 10-minute command
+SUBJECTS=${SUBJECTS:-60}           # the shipped bundles' dataset: sim dataset --subjects 60 --poses 20 --seed 1
+POSES=${POSES:-20}
+SEED=${SEED:-1}
+INIT=${INIT-models/bundles/cpu-fo} # a bundle whose autoencoder is trained on (import-bundle); empty: a fresh AE
+REGIME=${REGIME:-fo}
+LEARNING_RATE=${LEARNING_RATE:-3e-4}
+WORKERS=${WORKERS:-$(( $(nproc) > 3 ? $(nproc) - 2 : 1 ))}
+PYTHON=${PYTHON:-python3}
+SIM=${SIM:-target/release/sim}
+WORK=${WORK:-/tmp/gdvae-device}
+started=$(date +%s)
+say() { echo "[device job, ${SECONDS}s] $*"; }
+
+rm -rf "$WORK" && mkdir -p "$WORK" "$OUT"
+if compgen -G ".device/wheels/*.whl" >/dev/null; then
+    "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target "$WORK/site" .device/wheels/*.whl
+    export PYTHONPATH="$WORK/site${PYTHONPATH:+:$PYTHONPATH}"
+fi
+export PYTHONPATH="$PWD/models${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+"$PYTHON" -c "import torch, trimesh; print('torch', torch.__version__, 'device', '$DEVICE',
+    torch.cuda.get_device_name() if '$DEVICE'.startswith('cuda') else '')"
+
+say "dataset: $SUBJECTS subjects x $POSES poses per family, seed $SEED"
+"$SIM" dataset --out "$WORK/data" --subjects "$SUBJECTS" --poses "$POSES" --seed "$SEED" >/dev/null
+if compgen -G ".device/spectra/*.npy" >/dev/null; then  # computed here once: the cache is keyed by geometry
+    mkdir -p "$WORK/data/.spectra" && cp .device/spectra/*.npy "$WORK/data/.spectra/"
+fi
+
+args=(--recipe "$RECIPE" --regime "$REGIME" --device "$DEVICE" --ae-minutes "$AE_MINUTES"
+      --vae-minutes "$VAE_MINUTES" --loader-workers "$WORKERS" --set vae.omega_jacobian=0
+      --set "recipe.ae_learning_rate=$LEARNING_RATE")
+if [ -n "$INIT" ]; then
+    say "importing $INIT"
+    "$PYTHON" -m gdvae import-bundle "$INIT" --out "$WORK/imported"
+    args+=(--init-from "$WORK/imported" --continue-ae 10000000)  # the AE budget ends it
+else
+    args+=(--ae std --partial-views 0.75 --set ae.rotation_head=yaw)
+fi
+say "training: ${args[*]}"
+"$PYTHON" -m gdvae train "$WORK/data" --out "$WORK/run" "${args[@]}" 2>&1 | tee "$OUT/train.log"
+
+say "export (with the z_I variance calibration on the held-out subjects)"
+"$PYTHON" -m gdvae export "$WORK/run" --out "$OUT/bundle" --calibrate "$WORK/data" 2>&1 | tee -a "$OUT/train.log"
+cp "$WORK/run/log.jsonl" "$OUT/"
+"$PYTHON" - "$WORK/run" "$OUT/run.json" <<'PY'
+import json, pathlib, sys
+run = pathlib.Path(sys.argv[1])
+record = {"recipe": json.loads((run / "recipe.json").read_text()), "stages": json.loads((run / "stages.json").read_text())}
+pathlib.Path(sys.argv[2]).write_text(json.dumps(record, indent=2))
+PY
+say "done in $(( $(date +%s) - started )) s: $OUT/bundle"
