@@ -17,7 +17,7 @@ use gdvae_node::prepare::{Preparer, Sampling};
 use gdvae_node::publish::open_session;
 use gdvae_node::runtime::{loaded_library, Encoder};
 use gdvae_node::sources::files::{read_cloud, FileOptions};
-use gdvae_node::stats::{peak_memory_mib, Stats, STAGES};
+use gdvae_node::stats::{cpu_steal_seconds, peak_memory_mib, Stats, STAGES};
 
 #[derive(Parser)]
 #[command(
@@ -220,7 +220,7 @@ fn run_node(args: RunArgs) -> Result<()> {
         bail!("the config has no [[source]]; nothing to run");
     }
     let summary = run_pipeline(&config, RunOptions::default(), args.live_summary)?;
-    print_report(&summary, None, false)
+    print_report(&summary, None, None, false)
 }
 
 /// `replay`: the inputs as fast as possible (or at `--speed`), every frame kept; the report.
@@ -234,7 +234,9 @@ fn replay(args: ReplayArgs) -> Result<()> {
         lossless_publish: true,
         ..RunOptions::default()
     };
+    let steal_before = cpu_steal_seconds();
     let summary = run_pipeline(&config, options, false)?;
+    let steal = steal_before.zip(cpu_steal_seconds()).map(|(before, after)| after - before);
     let baseline = if args.no_baseline {
         None
     } else {
@@ -248,7 +250,7 @@ fn replay(args: ReplayArgs) -> Result<()> {
             .max(64) as usize;
         Some(gdvae_node::benchmark::encoder_alone(&bundle, &config.model, frames)?)
     };
-    print_report(&summary, baseline.as_ref().map(|b| (b, &config)), args.json)?;
+    print_report(&summary, baseline.as_ref().map(|b| (b, &config)), steal, args.json)?;
     require_states(&summary)
 }
 
@@ -774,6 +776,7 @@ fn run_with_live_summary(
 fn print_report(
     summary: &RunSummary,
     baseline: Option<(&gdvae_node::benchmark::EncoderAlone, &Config)>,
+    steal_s: Option<f64>,
     json: bool,
 ) -> Result<()> {
     let s = &summary.snapshot;
@@ -782,6 +785,9 @@ fn print_report(
     let wall = summary.busy.as_secs_f64().max(1e-9);
     let throughput = published as f64 / wall;
     let memory = peak_memory_mib();
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as f64;
+    // The share of the run's CPU time (all cores) that the host took: its latency tail's context.
+    let steal_share = steal_s.map(|steal| steal / (summary.wall.as_secs_f64().max(1e-9) * cores));
     if json {
         let report = serde_json::json!({
             "wall_s": summary.wall.as_secs_f64(),
@@ -790,6 +796,8 @@ fn print_report(
             "rejected": rejected,
             "throughput_fps": throughput,
             "peak_memory_mib": memory,
+            "host_cpu_steal_s": steal_s,
+            "host_cpu_steal_share": steal_share,
             "counters": s,
             "encoder_alone": baseline.map(|(b, _)| b),
             "throughput_vs_encoder_alone": baseline.map(|(b, _)| throughput / b.frames_per_second),
@@ -848,6 +856,17 @@ fn print_report(
     }
     if let Some(mib) = memory {
         println!("peak memory (VmHWM): {mib:.1} MiB");
+    }
+    if let (Some(steal), Some(share)) = (steal_s, steal_share) {
+        println!(
+            "host CPU steal during the run: {steal:.2} s ({:.1} % of {cores} cores' time){}",
+            100.0 * share,
+            if share > 0.002 {
+                ": the hypervisor ran other work on these cores; latency tails are not the node's alone"
+            } else {
+                ""
+            }
+        );
     }
     Ok(())
 }

@@ -231,6 +231,23 @@ impl Stats {
     }
 }
 
+/// CPU time the hypervisor took from this machine's virtual CPUs so far ("steal" in
+/// `/proc/stat`, all CPUs together), in seconds; None off Linux or on a kernel without the field.
+/// A benchmark reads it before and after: latency tails measured while the host steals time say
+/// more about the neighbours than about the node. `/proc/stat` counts in USER_HZ, which Linux
+/// fixes at 100 on every architecture it exports this file for.
+pub fn cpu_steal_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/stat").ok()?;
+    parse_cpu_steal(&stat)
+}
+
+/// The steal seconds of `/proc/stat`'s aggregate `cpu` line (its eighth value).
+pub fn parse_cpu_steal(stat: &str) -> Option<f64> {
+    let line = stat.lines().find(|l| l.starts_with("cpu "))?;
+    let ticks: u64 = line.split_whitespace().nth(8)?.parse().ok()?;
+    Some(ticks as f64 / 100.0)
+}
+
 /// Peak resident memory of this process (VmHWM), in MiB; None off Linux.
 pub fn peak_memory_mib() -> Option<f64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;

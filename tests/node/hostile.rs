@@ -318,6 +318,10 @@ fn replay_counts(path: &Path) -> (u64, u64, String) {
         .unwrap();
     assert!(handled(&output), "{}", String::from_utf8_lossy(&output.stderr));
     let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert!(
+        report["host_cpu_steal_s"].as_f64().is_some_and(|s| s >= 0.0) && report["host_cpu_steal_share"].is_number(),
+        "the report says how much CPU the host took during the run"
+    );
     let stream = path.file_stem().unwrap().to_str().unwrap();
     let counters = &report["counters"]["streams"][stream];
     let rejected: u64 = counters["rejected"]

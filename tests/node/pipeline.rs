@@ -404,3 +404,19 @@ fn a_live_feed_that_goes_silent_and_returns_resumes_and_the_gap_is_counted() {
     assert!(counters.feed_gap_s >= 2.4 && counters.feed_gap_s < 10.0, "{counters:?}");
     assert_eq!((counters.received, counters.dropped), (8, 0));
 }
+
+#[test]
+fn host_cpu_steal_is_read_from_the_aggregate_cpu_line_of_proc_stat() {
+    use gdvae_node::stats::parse_cpu_steal;
+    // user nice system idle iowait irq softirq steal guest guest_nice, in USER_HZ (1/100 s)
+    let stat = "cpu  238667 9007 11848 2058769 1347 0 492 1882 0 0\n\
+                cpu0 119000 4500 5900 1029000 600 0 250 950 0 0\n\
+                intr 1 2 3\n";
+    assert_eq!(parse_cpu_steal(stat), Some(18.82));
+    assert_eq!(parse_cpu_steal("cpu  1 2 3 4\n"), None, "a kernel without the steal field");
+    assert_eq!(parse_cpu_steal("cpu0 1 2 3 4 5 6 7 8\n"), None, "only the aggregate line counts");
+    if std::path::Path::new("/proc/stat").exists() {
+        let now = gdvae_node::stats::cpu_steal_seconds().expect("this Linux reports steal");
+        assert!(now >= 0.0 && now.is_finite());
+    }
+}
