@@ -236,7 +236,9 @@ fn replay(args: ReplayArgs) -> Result<()> {
     };
     let steal_before = cpu_steal_seconds();
     let summary = run_pipeline(&config, options, false)?;
-    let steal = steal_before.zip(cpu_steal_seconds()).map(|(before, after)| after - before);
+    let steal = steal_before
+        .zip(cpu_steal_seconds())
+        .map(|(before, after)| after - before);
     let baseline = if args.no_baseline {
         None
     } else {

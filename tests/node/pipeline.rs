@@ -413,8 +413,16 @@ fn host_cpu_steal_is_read_from_the_aggregate_cpu_line_of_proc_stat() {
                 cpu0 119000 4500 5900 1029000 600 0 250 950 0 0\n\
                 intr 1 2 3\n";
     assert_eq!(parse_cpu_steal(stat), Some(18.82));
-    assert_eq!(parse_cpu_steal("cpu  1 2 3 4\n"), None, "a kernel without the steal field");
-    assert_eq!(parse_cpu_steal("cpu0 1 2 3 4 5 6 7 8\n"), None, "only the aggregate line counts");
+    assert_eq!(
+        parse_cpu_steal("cpu  1 2 3 4\n"),
+        None,
+        "a kernel without the steal field"
+    );
+    assert_eq!(
+        parse_cpu_steal("cpu0 1 2 3 4 5 6 7 8\n"),
+        None,
+        "only the aggregate line counts"
+    );
     if std::path::Path::new("/proc/stat").exists() {
         let now = gdvae_node::stats::cpu_steal_seconds().expect("this Linux reports steal");
         assert!(now >= 0.0 && now.is_finite());
