@@ -1,25 +1,30 @@
 """Which step between the kit's training clouds and the node's camera clouds makes one subject's z_I
 wander as far as the step to another subject of its family? Reads a `gdvae-node evaluate --states`
-file of the tracking benchmark, re-poses every k-th frame's subject from its ground truth (beta,
-theta) with `sim pose`, and encodes, with the bundle's encoder, clouds that add one difference at a
-time to the kit's whole-surface sample:
+file of the tracking benchmark, re-poses every k-th frame's subject from the recording's ground
+truth (beta, theta) with `sim pose`, and encodes, with the bundle's encoder, clouds that add one
+difference at a time to the kit's whole-surface sample:
 
 - `whole`: 256 area-weighted points of the whole posed surface, centred on its bounding box (what
   the kit trains on);
 - `view`: only the faces turned towards the recording's true camera position (the kit's partial
   views: no self-occlusion), still centred on the whole surface's box;
-- `view-recentred`: the same points centred on their own box, as the node must (it never sees the
-  rest);
-- `view-fps`: 4,096 such points thinned to 256 by farthest-point sampling, as the node's prepare
-  stage does;
-- `node`: the node's own raw z_I on the depth camera's cloud (noise, self-occlusion, crop).
+- `view-recentred`: the same points centred on their own box, as the node must;
+- `view-fps`: 4,096 such points thinned to 256 by farthest-point sampling, as the node does;
+- `camera`, `camera-noisy`: what the kit's `DepthCamera` sees from the true camera position
+  (nearest point per pixel; with the stereo depth noise), thinned by farthest points;
+- `recording`: the recording's own depth cloud prepared as the node's `config/replay.toml` does,
+  in Python (a check that this script reproduces `node`);
+- `recording-on-mesh`: the same, keeping only points within 5 cm of the true surface first;
+- `recording-snapped`: those points moved onto the true surface (the camera's visibility, no
+  depth error);
+- `node`: the node's own raw z_I from the states file.
 
-For each it prints, per family, the within-subject spread of 10-frame fused windows next to the
-same-family step between subjects (as `bench/identity_metric.py` measures them; frames are fused
-with equal weights here because only the node has variances), so the stream where the ratio jumps
-names the step to fix.
+The Python streams are encoded as the node's yaw copies (`--yaw-copies`, default 4). For each it
+prints, per family, the median within-subject distance between adjacent 10-frame windows (equal
+weights) next to the median same-family step between subjects, and the share of those steps above
+the within-subject p99, so the stream where the ratio jumps names the step to fix.
 
-    .venv/bin/python bench/identity_domain.py SET-states.jsonl RECORDINGS_DIR [--every K] [--bundle DIR]
+    .venv/bin/python bench/identity_domain.py SET-states.jsonl RECORDINGS_DIR [--every K] [--streams A,B]
 """
 import argparse
 import json
@@ -30,12 +35,20 @@ from pathlib import Path
 
 import numpy as np
 import onnxruntime
+from mcap.reader import make_reader
+from scipy.spatial import cKDTree
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "models"))
-from gdvae.data import read_mesh, sample_surface  # noqa: E402
+from gdvae.data import DepthCamera, read_mesh, sample_surface  # noqa: E402
+from python_reference import decode_xyz, largest_cluster  # noqa: E402
 
 W = 10
+STREAMS = ("whole", "view", "view-recentred", "view-fps", "camera", "camera-noisy", "recording",
+           "recording-on-mesh", "recording-snapped", "node")
+CROP = np.array([-1.2, -1.2, 0.02, 1.2, 1.2, 2.5])  # config/replay.toml's
+NOISY = DepthCamera(dense=30000)  # the sim's OAK-D and the benchmark's --decimation 2
+EXACT = DepthCamera(dense=30000, disparity_sigma=0.0)
 
 
 def farthest_points(points, count, rng):
@@ -51,19 +64,23 @@ def box_centred(points):
     return points - 0.5 * (points.min(0) + points.max(0))
 
 
-def clouds_of(mesh, camera_in_object, points, rng):
+def clouds_of(mesh, camera_in_object, points, rng, wanted):
+    """The simulated streams in `wanted`, each a cloud of `points` for the encoder (metres)."""
     centre = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
     facing = camera_in_object - centre
     facing /= np.linalg.norm(facing)
-    whole_centre = lambda p: p - centre
     view = sample_surface(mesh, points, rng, facing)
-    dense = sample_surface(mesh, 4096, rng, facing)
-    return {
-        "whole": whole_centre(sample_surface(mesh, points, rng)),
-        "view": whole_centre(view),
-        "view-recentred": box_centred(view),
-        "view-fps": box_centred(farthest_points(dense, points, rng)),
+    makers = {
+        "whole": lambda: sample_surface(mesh, points, rng) - centre,
+        "view": lambda: view - centre,
+        "view-recentred": lambda: box_centred(view),
+        "view-fps": lambda: box_centred(farthest_points(sample_surface(mesh, 4096, rng, facing), points, rng)),
+        "camera": lambda: box_centred(farthest_points(
+            EXACT.see(sample_surface(mesh, EXACT.dense, rng), camera_in_object, rng, 1.0), points, rng)),
+        "camera-noisy": lambda: box_centred(farthest_points(
+            NOISY.see(sample_surface(mesh, NOISY.dense, rng), camera_in_object, rng, 1.0), points, rng)),
     }
+    return {name: make() for name, make in makers.items() if name in wanted}
 
 
 def spread(segments):
@@ -87,13 +104,46 @@ def spread(segments):
 
 def ground_truth(recording):
     """frame -> the sim's full ground truth (beta, theta, ...) from the recording's truth channel."""
-    from mcap.reader import make_reader
     out = {}
     with open(recording, "rb") as f:
         for _, _, message in make_reader(f).iter_messages(topics=["/sim/ground_truth"]):
             truth = json.loads(message.data)
             out[truth["frame"]] = truth
     return out
+
+
+def camera_clouds(recording, frames):
+    """frame -> the recording's depth-camera cloud (camera frame, metres), for the given frames."""
+    out = {}
+    with open(recording, "rb") as f:
+        messages = make_reader(f).iter_messages(topics=["/camera/depth/points"])
+        for frame, (_, _, message) in enumerate(messages):
+            if frame in frames:
+                out[frame] = decode_xyz(message.data).astype(np.float64)
+    return out
+
+
+def as_the_node_prepares(points, truth, rng, points_out, near_mesh=None, snap=False):
+    """The node's `config/replay.toml` preparation in Python (bench/python_reference.py's steps):
+    the recording's camera pose, the crop, the largest 6-cm cluster, farthest points, box
+    centring; with `near_mesh` (a KD-tree of the posed subject in the world frame) only the points
+    within 5 cm of its surface are kept first (no floor, no strays), and with `snap` each is moved
+    onto the nearest point of the surface sample (no depth noise, the camera's visibility kept)."""
+    pose = truth["world_from_camera"]
+    world = points @ quaternion_matrix(pose["rotation_xyzw"]).T + np.array(pose["translation"])
+    world = world[((world >= CROP[:3]) & (world <= CROP[3:])).all(-1)]
+    if near_mesh is not None:
+        distance, nearest = near_mesh.query(world)
+        world = near_mesh.data[nearest[distance < 0.05]] if snap else world[distance < 0.05]
+    world = largest_cluster(world, 0.06)
+    return box_centred(farthest_points(world, points_out, rng))
+
+
+def quaternion_matrix(xyzw):
+    x, y, z, w = xyzw
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def main():
@@ -103,6 +153,8 @@ def main():
     parser.add_argument("--every", type=int, default=2, help="use every K-th frame (default 2)")
     parser.add_argument("--bundle", default=str(ROOT / "models/bundles/cpu-fo"))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--yaw-copies", type=int, default=4, help="as the node's model.yaw_copies (default 4)")
+    parser.add_argument("--streams", default=",".join(STREAMS), help=f"comma-separated, of {', '.join(STREAMS)}")
     args = parser.parse_args()
     manifest = json.loads((Path(args.bundle) / "manifest.json").read_text())
     scale, points = manifest["training"]["scale"], manifest["sizes"]["points"]
@@ -120,7 +172,12 @@ def main():
             rows.append(row)
     rows.sort(key=lambda r: (r["state"]["stream"], r["truth"]["frame"]))  # streams interleave
     rng = np.random.default_rng(args.seed)
-    streams = {name: [] for name in ("whole", "view", "view-recentred", "view-fps", "node")}
+    streams = {name: [] for name in args.streams.split(",")}
+    clouds = {}
+    if {"recording", "recording-on-mesh", "recording-snapped"} & set(streams):
+        for stream in sorted({r["state"]["stream"] for r in rows}):
+            frames = {r["truth"]["frame"] for r in rows if r["state"]["stream"] == stream}
+            clouds[stream] = camera_clouds(Path(args.recordings) / f"{stream}.mcap", frames)
     with tempfile.TemporaryDirectory() as work:
         requests = Path(work) / "requests.jsonl"
         with open(requests, "w") as f:
@@ -133,20 +190,42 @@ def main():
             t = row["truth"]
             mesh = read_mesh(Path(work) / f"f{i}.ply")
             c, s = np.cos(t["yaw"]), np.sin(t["yaw"])
-            object_from_world = np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
-            camera = object_from_world @ (np.array(t["world_from_camera"]["translation"]) - np.array(t["translation"]))
-            for name, cloud in clouds_of(mesh, camera, points, rng).items():
+            world_from_object = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+            translation = np.array(t["translation"])
+            camera = world_from_object.T @ (np.array(t["world_from_camera"]["translation"]) - translation)
+            made = clouds_of(mesh, camera, points, rng, set(streams))
+            if {"recording", "recording-on-mesh", "recording-snapped"} & set(streams):
+                cloud = clouds[row["state"]["stream"]][t["frame"]]
+                if "recording" in streams:
+                    made["recording"] = as_the_node_prepares(cloud, t, rng, points)
+                surface = cKDTree(sample_surface(mesh, 30000, rng) @ world_from_object.T + translation)
+                if "recording-on-mesh" in streams:
+                    made["recording-on-mesh"] = as_the_node_prepares(cloud, t, rng, points, surface)
+                if "recording-snapped" in streams:
+                    made["recording-snapped"] = as_the_node_prepares(cloud, t, rng, points, surface, snap=True)
+            for name, cloud in made.items():
                 streams[name].append(cloud)
             if (i + 1) % 200 == 0:
                 print(f"  posed and sampled {i + 1}/{len(rows)} frames", file=sys.stderr)
 
     keys = [(r["state"]["stream"], r["truth"]["subject"], r["truth"]["family"]) for r in rows]
-    z = {"node": np.array([r["state"]["raw"]["z_i"] for r in rows])}
-    for name in ("whole", "view", "view-recentred", "view-fps"):
-        batch = (np.stack(streams[name]) * scale).astype(np.float32)
-        z[name] = np.concatenate([session.run(None, {"points": batch[k:k + 256]})[z_i_index]
-                                  for k in range(0, len(batch), 256)])
-    print(f"{args.states}: {len(rows)} frames (every {args.every}), bundle {args.bundle}")
+    z = {}
+    for name in streams:
+        if name == "node":
+            z[name] = np.array([r["state"]["raw"]["z_i"] for r in rows])
+            continue
+        # As the node's yaw copies (src/yaw_copies.rs): z_I averaged over K turned copies (all of
+        # them here, the node averages the copies its rotation vote keeps).
+        copies = []
+        for angle in np.arange(args.yaw_copies) * 2 * np.pi / args.yaw_copies:
+            c, s = np.cos(angle), np.sin(angle)
+            turn = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+            batch = (np.stack(streams[name]) @ turn.T * scale).astype(np.float32)
+            copies.append(np.concatenate([session.run(None, {"points": batch[k:k + 256]})[z_i_index]
+                                          for k in range(0, len(batch), 256)]))
+        z[name] = np.mean(copies, axis=0)
+    print(f"{args.states}: {len(rows)} frames (every {args.every}), bundle {args.bundle}, "
+          f"{args.yaw_copies} yaw copies")
     print(f"{'stream':16s} {'family':10s} {'within':>8s} {'between':>8s} {'ratio':>6s} {'found':>6s}")
     for name, values in z.items():
         segments, start = [], 0

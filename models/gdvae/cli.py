@@ -230,6 +230,7 @@ def export_command(args) -> int:
     metrics = json.loads(Path(args.metrics).read_text()) if args.metrics else None
     training = {**summary, "ae_iterations": chosen.ae_iterations, "vae_iterations": chosen.vae_iterations,
                 "ae_batch": chosen.ae_batch, "vae_batch": chosen.vae_batch, "partial_views": chosen.partial_views,
+                "depth_camera_views": chosen.depth_camera_views,
                 "bank_partial_views": chosen.bank_view_share()}
     training.update(trained_iterations(Path(args.run), chosen))
     calibration = None

@@ -186,6 +186,62 @@ def sample_surface(mesh: Mesh, count: int, rng: np.random.Generator, facing: np.
     return (a + u[:, None] * (b - a) + v[:, None] * (c - a)).astype(np.float32)
 
 
+@dataclass(frozen=True)
+class DepthCamera:
+    """The sim's stereo depth camera (sim/src/camera.rs: OAK-D at 640x400, fx 441.25 px, 7.5 cm
+    baseline, 0.1 px disparity noise), as the node's benchmark records it (every 2nd pixel), at
+    `distance_m` from the subject. Lengths in metres; `view` converts to model units."""
+
+    fx: float = 441.25
+    baseline_m: float = 0.075
+    disparity_sigma: float = 0.1
+    decimation: int = 2
+    distance_m: tuple[float, float] = (2.4, 3.6)
+    dense: int = 8000
+
+    def view(self, surface: np.ndarray, count: int, rng: np.random.Generator, direction: np.ndarray,
+             scale: float) -> np.ndarray:
+        """`count` points (float32, drawn from `see`'s, repeated when fewer) of what the camera
+        sees of a dense `surface` sample (`sample_surface(mesh, self.dense)`) from `direction`
+        (unit vector from its box centre towards the camera) at a random distance in
+        `distance_m`; `scale`: model units per metre."""
+        centre = 0.5 * (surface.min(axis=0) + surface.max(axis=0))
+        points = self.see(surface, centre + direction * rng.uniform(*self.distance_m) * scale, rng, scale)
+        return points[rng.choice(len(points), size=count, replace=len(points) < count)].astype(np.float32)
+
+    def see(self, surface: np.ndarray, camera: np.ndarray, rng: np.random.Generator, scale: float) -> np.ndarray:
+        """Every point of a dense `surface` sample that the camera at `camera` (same units),
+        looking at the sample's box centre, sees: the nearest visible point per pixel
+        (self-occlusion), each moved along its ray by the stereo depth error (sigma = z^2 *
+        disparity sigma / (fx * baseline), in metres)."""
+        centre = 0.5 * (surface.min(axis=0) + surface.max(axis=0))
+        forward = (centre - camera) / np.linalg.norm(centre - camera)
+        right = np.cross(forward, [0.0, 0.0, 1.0]) if abs(forward[2]) < 0.99 else np.cross(forward, [1.0, 0.0, 0.0])
+        right /= np.linalg.norm(right)
+        up = np.cross(right, forward)
+        rays = surface.astype(np.float64) - camera
+        depth = rays @ forward
+        focal = self.fx / self.decimation
+        pixel = np.floor(focal * np.stack([rays @ right, rays @ up], axis=1) / depth[:, None]).astype(np.int64)
+        # Depth buffer and its minimum over each pixel's 3x3 neighbourhood, so that a pixel no
+        # near-side sample fell in does not show the far side (tolerance: six pixels' footprint).
+        pixel -= pixel.min(axis=0)
+        buffer = np.full(pixel.max(axis=0) + 3, np.inf)
+        np.minimum.at(buffer, (pixel[:, 0] + 1, pixel[:, 1] + 1), depth)
+        near = buffer.copy()
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                near[1:-1, 1:-1] = np.minimum(near[1:-1, 1:-1], buffer[1 + dx:buffer.shape[0] - 1 + dx,
+                                                                      1 + dy:buffer.shape[1] - 1 + dy])
+        # Per pixel the nearest point, unless something well in front of it is nearby.
+        cell = (pixel[:, 0] + 1, pixel[:, 1] + 1)
+        seen = np.flatnonzero((depth == buffer[cell]) & (depth <= near[cell] + 6.0 * depth / focal))
+        depth_m = depth[seen] / scale
+        sigma_m = depth_m ** 2 * self.disparity_sigma / (self.fx * self.baseline_m)
+        stretch = (depth_m + sigma_m * rng.standard_normal(len(seen))) / depth_m
+        return camera + rays[seen] * stretch[:, None]
+
+
 def random_view_directions(count: int, rng: np.random.Generator, up_axis: int = 2,
                            elevation_degrees: tuple[float, float] = (5.0, 40.0)) -> np.ndarray:
     """Unit vectors towards a camera: any azimuth about the up axis, looking down by an elevation

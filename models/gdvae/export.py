@@ -207,7 +207,8 @@ def model_card(manifest: dict) -> str:
         f"{t.get('dataset', '?')}: {t.get('train_meshes', '?')} training meshes of {t.get('train_subjects', '?')} "
         f"subjects; families {', '.join(t.get('families', [])) or '?'}.",
         f"AE iterations {t.get('ae_iterations', '?')}, VAE iterations {t.get('vae_iterations', '?')}.",
-        f"Partial views: {partial:.0%} of the AE's input copies were the side a camera sees "
+        f"Partial views: {partial:.0%} of the AE's input copies were the side a camera sees"
+        f"{', as the depth camera renders it (self-occlusion, stereo noise)' if t.get('depth_camera_views') else ''} "
         "(the AE still reconstructs the whole surface)." if partial else "Partial views: none (whole surfaces only).",
         "",
         "## Measured on held-out subjects",

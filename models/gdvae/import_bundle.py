@@ -166,7 +166,7 @@ def architecture(manifest: dict, rotation_head: str):
     chosen.spectrum_count = sizes["spectrum"]
     for field, key in (("ae_iterations", "ae_iterations"), ("vae_iterations", "vae_iterations"),
                        ("ae_batch", "ae_batch"), ("vae_batch", "vae_batch"), ("partial_views", "partial_views"),
-                       ("bank_partial_views", "bank_partial_views")):
+                       ("bank_partial_views", "bank_partial_views"), ("depth_camera_views", "depth_camera_views")):
         if training.get(key) is not None:
             setattr(chosen, field, training[key])
     return chosen

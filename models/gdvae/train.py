@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from .ae import AEConfig, Autoencoder, ae_loss
-from .data import MeshDataset, normalize, random_view_directions, sample_surface
+from .data import DepthCamera, MeshDataset, normalize, random_view_directions, sample_surface
 from .geometry import matrix_to_quaternion, quaternion_to_matrix, random_rotation_matrices, rotate
 from .vae import LatentVAE, VAEConfig, vae_loss
 
@@ -76,6 +76,10 @@ class Recipe:
     # Fraction of AE input copies that are partial views (what a depth camera sees); the AE still
     # reconstructs the whole surface, so x_c learns to ignore the view. Supervised AEs only.
     partial_views: float = 0.0
+    # Render those partial views (AE inputs and code-bank copies) as the node's depth camera sees
+    # them (`DepthCamera`: nearest point per pixel, stereo depth noise) instead of as the faces
+    # turned towards the camera (no self-occlusion, no noise).
+    depth_camera_views: bool = False
     checkpoint_seconds: float = 120.0
     seed: int = 0
 
@@ -169,10 +173,14 @@ def dataset_summary(dataset: MeshDataset) -> dict:
 
 
 class PointSampler:
-    """Area-weighted surface samples of dataset meshes in model units (dataset scale, centred)."""
+    """Area-weighted surface samples of dataset meshes in model units (dataset scale, centred).
+    `camera`: partial views are what this depth camera sees; None: the faces turned towards it."""
 
-    def __init__(self, dataset: MeshDataset, indices: list[int], points: int, seed: int):
+    def __init__(self, dataset: MeshDataset, indices: list[int], points: int, seed: int,
+                 camera: DepthCamera | None = None):
         self.meshes = [normalize(dataset.meshes[i], dataset.scale) for i in indices]
+        self.scale, self.camera = dataset.scale, camera
+        self.surfaces: dict[int, np.ndarray] = {}  # per mesh, the dense sample the camera views
         self.points = points
         self.rng = np.random.default_rng(seed)
 
@@ -188,8 +196,15 @@ class PointSampler:
         for _ in range(copies):
             directions = random_view_directions(len(chosen), self.rng)
             for index, direction in zip(chosen, directions):
-                facing = direction if self.rng.random() < partial else None
-                clouds.append(sample_surface(self.meshes[index], self.points, self.rng, facing))
+                mesh = self.meshes[index]
+                if self.rng.random() >= partial:
+                    clouds.append(sample_surface(mesh, self.points, self.rng))
+                elif self.camera is None:
+                    clouds.append(sample_surface(mesh, self.points, self.rng, direction))
+                else:
+                    if index not in self.surfaces:
+                        self.surfaces[index] = sample_surface(mesh, self.camera.dense, self.rng)
+                    clouds.append(self.camera.view(self.surfaces[index], self.points, self.rng, direction, self.scale))
         return torch.from_numpy(np.stack(clouds))
 
     def clouds(self, index: int, count: int) -> torch.Tensor:
@@ -333,7 +348,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if "ae" in state:
         ae.load_state_dict(state["ae"])
     stages = StageRecord(run_dir / "stages.json", str(device))
-    sampler = PointSampler(dataset, train_indices, chosen.ae.points, chosen.seed + state["iteration"])
+    sampler = PointSampler(dataset, train_indices, chosen.ae.points, chosen.seed + state["iteration"],
+                           DepthCamera() if chosen.depth_camera_views else None)
     if imported and state["stage"] == "ae":
         from .import_bundle import restore_batch_norms
 

@@ -81,3 +81,28 @@ def test_bad_meshes_are_skipped_with_a_reason_and_counted(tmp_path, caplog):
 def test_a_folder_without_usable_meshes_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="no usable meshes"):
         load_dataset(tmp_path)
+
+
+def test_the_depth_camera_sees_only_the_nearest_surface_and_adds_depth_noise():
+    from gdvae.data import DepthCamera
+
+    def ball(centre, radius):
+        s = trimesh.creation.icosphere(subdivisions=4, radius=radius)
+        return np.asarray(s.vertices, float) + centre, np.asarray(s.faces)
+
+    # A small ball hidden behind a large one, seen from 3 m along +x (model units = metres).
+    (va, fa), (vb, fb) = ball([0.5, 0, 0], 0.3), ball([-0.5, 0, 0], 0.1)
+    mesh = Mesh(np.vstack([va, vb]), np.vstack([fa, fb + len(va)]))
+    towards = np.array([1.0, 0.0, 0.0])
+    rng = np.random.default_rng(0)
+    exact = DepthCamera(disparity_sigma=0.0, distance_m=(3.0, 3.0), dense=20000)
+    seen = exact.view(sample_surface(mesh, exact.dense, rng), 400, rng, towards, scale=1.0)
+    assert seen.shape == (400, 3) and seen.dtype == np.float32
+    assert seen[:, 0].min() > 0.45  # the near half of the large ball only
+    # Back-face culling alone (the kit's other partial views) keeps the hidden ball's front.
+    assert sample_surface(mesh, 2000, rng, facing=towards)[:, 0].min() < -0.4
+    radial = lambda p: np.linalg.norm(p - [0.5, 0, 0], axis=1) - 0.3
+    assert np.abs(radial(seen)).max() < 0.01
+    noisy = DepthCamera(distance_m=(3.0, 3.0)).view(sample_surface(mesh, 20000, rng), 400, rng, towards, scale=1.0)
+    # sigma = z^2 * 0.1 / (441.25 * 0.075), about 0.02 m at 2.6 m.
+    assert 0.01 < radial(noisy).std() < 0.03

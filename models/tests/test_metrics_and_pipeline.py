@@ -139,6 +139,10 @@ def test_training_on_partial_views(tiny_dataset, tmp_path):
     measured = json.loads(metrics.read_text())
     assert "S" not in measured and measured["partial_views"]["views_per_shape"] == 2
     assert np.isfinite(measured["C_X"]) and np.isfinite(measured["partial_views"]["C_X"])
+    camera = tmp_path / "camera"
+    assert main(["train", str(tiny_dataset), "--out", str(camera), "--recipe", "smoke", "--partial-views", "0.5",
+                 "--set", "recipe.depth_camera_views=true", "--stop-after", "ae"]) == 0
+    assert json.loads((camera / "recipe.json").read_text())["depth_camera_views"] is True
     refused = main(["train", str(tiny_dataset), "--out", str(tmp_path / "u"), "--recipe", "smoke", "--partial-views",
                     "0.5", "--unsupervised"])
     assert refused != 0 and not (tmp_path / "u" / "checkpoint.pt").exists()
