@@ -42,6 +42,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "models"))
 from gdvae.data import DepthCamera, read_mesh, sample_surface  # noqa: E402
 from python_reference import decode_xyz, largest_cluster  # noqa: E402
+from python_reference import farthest_point_sampling as farthest_points  # noqa: E402
 
 W = 10
 STREAMS = ("whole", "view", "view-recentred", "view-fps", "camera", "camera-noisy", "recording",
@@ -49,15 +50,6 @@ STREAMS = ("whole", "view", "view-recentred", "view-fps", "camera", "camera-nois
 CROP = np.array([-1.2, -1.2, 0.02, 1.2, 1.2, 2.5])  # config/replay.toml's
 NOISY = DepthCamera(dense=30000)  # the sim's OAK-D and the benchmark's --decimation 2
 EXACT = DepthCamera(dense=30000, disparity_sigma=0.0)
-
-
-def farthest_points(points, count, rng):
-    chosen = [int(rng.integers(len(points)))]
-    distance = np.linalg.norm(points - points[chosen[0]], axis=1)
-    for _ in range(count - 1):
-        chosen.append(int(distance.argmax()))
-        distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=1))
-    return points[chosen]
 
 
 def box_centred(points):
