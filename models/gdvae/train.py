@@ -506,7 +506,18 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, 
         spectrum.append(torch.from_numpy(np.repeat(spectra[index][None], len(clouds), 0)).float())
     log.info("bank: %d training meshes x %d rotations encoded (%.0f%% partial views)", len(sampler.meshes),
              chosen.bank_copies, 100 * partial)
-    return {"q": torch.cat(qs), "x_c": torch.cat(codes), "spectrum": torch.cat(spectrum)}
+    return {"q": torch.cat(qs), "x_c": torch.cat(codes), "spectrum": torch.cat(spectrum), "copies": chosen.bank_copies}
+
+
+def bank_batch(size: int, batch: int, copies: int, paired: bool, generator: torch.Generator) -> torch.Tensor:
+    """Indices of a VAE batch drawn from the code bank (mesh by mesh, `copies` entries each). With
+    `paired`, the second half is another copy (view) of the first half's meshes, row by row, for
+    the view-consistency term; a mesh's copy may be drawn twice."""
+    if not paired:
+        return torch.randint(0, size, (min(batch, size),), generator=generator)
+    first = torch.randint(0, size, (max(1, min(batch, size) // 2),), generator=generator)
+    partner = first // copies * copies + torch.randint(0, copies, first.shape, generator=generator)
+    return torch.cat([first, partner])
 
 
 def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, device=None, budget_seconds=None,
@@ -523,6 +534,9 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
     last_save = started = time.monotonic()
     device = device or torch.device("cpu")
     size = len(bank["q"])
+    copies = bank.get("copies", chosen.bank_copies)  # banks saved before it was recorded
+    if size % copies:
+        raise ValueError(f"the code bank has {size} entries, not a multiple of its {copies} copies per mesh")
     on_device = {key: bank[key].to(device) for key in ("q", "x_c", "spectrum")}
     vae.train()
     iteration, budget_ended = start, False
@@ -532,7 +546,7 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
                      budget_seconds, iteration, total)
             budget_ended = True
             break
-        batch = torch.randint(0, size, (min(chosen.vae_batch, size),), generator=generator).to(device)
+        batch = bank_batch(size, chosen.vae_batch, copies, vae.config.omega_view > 0, generator).to(device)
         warmup = vae.config.beta_warmup_iterations
         beta_scale = min(1.0, iteration / warmup) if warmup > 0 else 1.0
         losses = vae_loss(vae, on_device["q"][batch], on_device["x_c"][batch], on_device["spectrum"][batch],

@@ -67,6 +67,12 @@ class VAEConfig:
     # constant); "correlation": the sum of squared cross-correlations, scale-free, with a floor of
     # about 1/batch per pair of dimensions; "off". (Issue 11, cause 3.)
     covariance_form: str = "covariance"
+    # Not in the paper: weight of a view-consistency term. The code bank holds several views of
+    # each training mesh, which share its spectrum; the term is the mean squared distance between
+    # mu_I of two views of one mesh over twice the variance of mu_I across the batch (0 when the
+    # views agree, about 1 when they are as far apart as two meshes), so z_I is pushed to name the
+    # mesh, not the view. Batches are then drawn as pairs of views (`train_vae`). 0: off.
+    omega_view: float = 0.0
 
     @property
     def n_intrinsic(self) -> int:
@@ -79,6 +85,8 @@ class VAEConfig:
             raise ValueError("latent sizes must be positive")
         if self.covariance_form not in ("covariance", "correlation", "off"):
             raise ValueError(f"covariance_form must be 'covariance', 'correlation' or 'off', got {self.covariance_form!r}")
+        if not self.omega_view >= 0:
+            raise ValueError(f"omega_view must be >= 0 (0: off), got {self.omega_view}")
 
     @classmethod
     def flow_only(cls, **overrides) -> "VAEConfig":
@@ -205,10 +213,20 @@ class VAELosses:
     parts: dict[str, float] = field(default_factory=dict)
 
 
+def view_consistency(mu_i: torch.Tensor) -> torch.Tensor:
+    """The batch's first half and second half are two views of the same meshes, row by row: their
+    mean squared mu_I distance over twice mu_I's variance across the whole batch (scale-free)."""
+    half = len(mu_i) // 2
+    apart = (mu_i[:half] - mu_i[half:2 * half]).pow(2).sum(-1).mean()
+    spread = (mu_i - mu_i.mean(0)).pow(2).sum(-1).mean()
+    return apart / (2 * spread + 1e-8)
+
+
 def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: torch.Tensor,
              dataset_size: int, with_jacobian: bool = True, beta_scale: float = 1.0) -> VAELosses:
     """The full objective L_HF + L_lambda + L_F + L_D on a batch, in the configured regime.
-    `beta_scale` multiplies the four HFVAE betas (the warm-up)."""
+    `beta_scale` multiplies the four HFVAE betas (the warm-up). With `omega_view` > 0 the batch
+    must be pairs of views (`view_consistency`)."""
     c = model.config
     (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = model.encode(q, x_c)
     flow_mean, log_det = model.flow(spectrum)
@@ -247,6 +265,8 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
     error = (mu_i.detach() - flow_mean.detach()).pow(2)
     variance = 0.5 * (error * torch.exp(-lv_i) + lv_i).sum(-1).mean()
     consistency = consistency + c.omega_variance * variance
+    views = view_consistency(mu_i) if c.omega_view > 0 else mu_i.new_zeros(())
+    consistency = consistency + c.omega_view * views
 
     covariance = disentanglement_penalty(c.covariance_form, [mu_r, mu_e, mean_i])
     # omega_J = 0 turns L_J off, and its cost (most of a step) with it.
@@ -258,6 +278,6 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
     parts = {
         "total": total, "reconstruction": reconstruction, "quaternion": rotation,
         **terms, "log_p_lambda": log_likelihood, "intrinsic_consistency": intrinsic,
-        "spectrum_error": spectrum_error, "variance_nll": variance, "covariance": covariance, "jacobian": jacobian,
+        "spectrum_error": spectrum_error, "variance_nll": variance, "view_consistency": views, "covariance": covariance, "jacobian": jacobian,
     }
     return VAELosses(total, {k: float(v.detach()) for k, v in parts.items()})

@@ -12,7 +12,8 @@ from gdvae.flow import SpectralFlow
 from gdvae.geometry import (chamfer, geodesic_distance, matrix_to_quaternion, quaternion_distance,
                             quaternion_to_matrix, random_rotation_matrices, rotate)
 from gdvae.hfvae import gaussian_log_density, hfvae_terms
-from gdvae.vae import LatentVAE, VAEConfig, correlation_penalty, covariance_penalty, vae_loss
+from gdvae.train import bank_batch
+from gdvae.vae import LatentVAE, VAEConfig, correlation_penalty, covariance_penalty, vae_loss, view_consistency
 
 SMALL_AE = dict(points=64, latent=24, rotation_hidden=(16, 32), shape_hidden=(16, 32), decoder_width=32, copies=2)
 
@@ -20,6 +21,13 @@ SMALL_AE = dict(points=64, latent=24, rotation_hidden=(16, 32), shape_hidden=(16
 def small_vae(regime="gdvae++"):
     base = dict(latent=24, spectrum=6, n_extrinsic=3, width_scale=0.02, flow_layers=3, flow_hidden=32)
     return VAEConfig(**base) if regime == "gdvae++" else VAEConfig.flow_only(**base)
+
+
+def only(config, **weights):
+    """Every beta and omega of `config` at 0 but the given ones."""
+    for name in vars(config):
+        if name.startswith(("beta_", "omega_")):
+            setattr(config, name, weights.get(name, 0.0))
 
 
 def no_gradient(model):
@@ -135,14 +143,48 @@ def test_vae_every_used_parameter_gets_a_gradient(regime):
     assert (model.spectral_variance is None) == (regime == "fo")
 
 
+def test_view_consistency_is_zero_for_agreeing_views_and_about_one_for_unrelated_ones():
+    torch.manual_seed(0)
+    meshes = torch.randn(200, 6)
+    assert view_consistency(torch.cat([meshes, meshes])).item() == pytest.approx(0.0, abs=1e-6)
+    unrelated = view_consistency(torch.cat([meshes, torch.randn(200, 6)])).item()
+    assert 0.8 < unrelated < 1.2
+    # Scale-free: shrinking every code does not lower it.
+    noisy = torch.cat([meshes, meshes + 0.3 * torch.randn(200, 6)])
+    assert view_consistency(0.01 * noisy).item() == pytest.approx(view_consistency(noisy).item(), rel=1e-4)
+
+
+def test_view_consistency_trains_the_intrinsic_encoder_only_when_weighted():
+    q = torch.nn.functional.normalize(torch.randn(16, 4), dim=-1)
+    x_c, spectra = torch.randn(16, 24), torch.rand(16, 6).cumsum(-1) + 1
+    for weight in (0.0, 5.0):
+        torch.manual_seed(0)
+        model = LatentVAE(small_vae("fo"))
+        only(model.config, omega_view=weight)
+        model.flow.input.fit(spectra)
+        losses = vae_loss(model, q, x_c, spectra, dataset_size=50, with_jacobian=False)
+        assert losses.parts["view_consistency"] == (0.0 if weight == 0 else pytest.approx(losses.parts["total"] / weight))
+        if weight:
+            losses.total.backward()
+            assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.intrinsic.mean.parameters())
+    with pytest.raises(ValueError, match="omega_view"):
+        VAEConfig(omega_view=-1.0).validate()
+
+
+def test_paired_bank_batches_pair_two_copies_of_one_mesh():
+    generator = torch.Generator().manual_seed(0)
+    batch = bank_batch(size=80, batch=64, copies=8, paired=True, generator=generator)
+    assert len(batch) == 64 and batch.max() < 80
+    assert torch.equal(batch[:32] // 8, batch[32:] // 8)
+    assert (batch[:32] != batch[32:]).any()
+    plain = bank_batch(size=80, batch=64, copies=8, paired=False, generator=generator)
+    assert len(plain) == 64 and not torch.equal(plain[:32] // 8, plain[32:] // 8)
+
+
 def test_gdvaepp_cuts_the_intrinsic_consistency_gradient_through_the_flow():
     torch.manual_seed(0)
     model = LatentVAE(small_vae("gdvae++"))
-    config = model.config
-    for name in vars(config):
-        if name.startswith(("beta_", "omega_")):
-            setattr(config, name, 0.0)
-    config.omega_intrinsic = 1.0
+    only(model.config, omega_intrinsic=1.0)
     q = torch.nn.functional.normalize(torch.randn(8, 4), dim=-1)
     spectra = torch.rand(8, 6).cumsum(-1) + 1
     model.flow.input.fit(spectra)
