@@ -28,10 +28,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import onnxruntime
 
-from identity_domain import CROP, ROOT, box_centred, camera_clouds, farthest_points, ground_truth
-from identity_domain import largest_cluster, quaternion_matrix, spread
+from identity_domain import CROP, ROOT, box_centred, camera_clouds, encoder_of, farthest_points
+from identity_domain import largest_cluster, quaternion_matrix, sampled_rows, spread
 
 W = 10
 
@@ -42,21 +41,8 @@ def turn(yaw):
 
 
 def fusion(args):
-    bundle = Path(args.bundle)
-    manifest = json.loads((bundle / "manifest.json").read_text())
-    scale, points = manifest["training"]["scale"], manifest["sizes"]["points"]
-    session = onnxruntime.InferenceSession(str(bundle / "encoder.onnx"))
-    z_i_index = [o.name for o in session.get_outputs()].index("z_I_mean")
-    rows, full = [], {}
-    for n, line in enumerate(open(args.states)):
-        row = json.loads(line)
-        if row["truth"] is not None and n % args.every == 0:
-            stream = row["state"]["stream"]
-            if stream not in full:
-                full[stream] = ground_truth(Path(args.recordings) / f"{stream}.mcap")
-            row["truth"] = {**row["truth"], **full[stream][row["truth"]["frame"]]}
-            rows.append(row)
-    rows.sort(key=lambda r: (r["state"]["stream"], r["truth"]["frame"]))
+    scale, points, session, z_i_index = encoder_of(args.bundle)
+    rows = sampled_rows(args.states, args.recordings, args.every)
     world = []  # each row's prepared cloud in the world frame
     for stream in sorted({r["state"]["stream"] for r in rows}):
         mine = [r for r in rows if r["state"]["stream"] == stream]
@@ -76,7 +62,7 @@ def fusion(args):
                                           for k in range(0, len(batch), 256)]))
         return np.mean(copies, axis=0)
 
-    print(f"{args.states}: {len(rows)} frames (every {args.every}), bundle {bundle}")
+    print(f"{args.states}: {len(rows)} frames (every {args.every}), bundle {args.bundle}")
     for source in ("true", "node"):
         poses = [(r["truth"]["yaw"], np.array(r["truth"]["translation"])) if source == "true"
                  else (r["state"]["filtered"]["yaw"], np.array(r["state"]["centre_m"])) for r in rows]

@@ -131,6 +131,30 @@ def as_the_node_prepares(points, truth, rng, points_out, near_mesh=None, snap=Fa
     return box_centred(farthest_points(world, points_out, rng))
 
 
+def encoder_of(bundle):
+    """(model units per metre, N_p, an ONNX Runtime session of the encoder, z_I_mean's output index)."""
+    manifest = json.loads((Path(bundle) / "manifest.json").read_text())
+    session = onnxruntime.InferenceSession(str(Path(bundle) / "encoder.onnx"))
+    z_i_index = [o.name for o in session.get_outputs()].index("z_I_mean")
+    return manifest["training"]["scale"], manifest["sizes"]["points"], session, z_i_index
+
+
+def sampled_rows(states, recordings, every):
+    """Every `every`-th row of a states file that has ground truth, the truth completed from the
+    recording's truth channel, ordered by stream and frame (the streams interleave in the file)."""
+    rows, full = [], {}
+    for n, line in enumerate(open(states)):
+        row = json.loads(line)
+        if row["truth"] is not None and n % every == 0:
+            stream = row["state"]["stream"]
+            if stream not in full:
+                full[stream] = ground_truth(Path(recordings) / f"{stream}.mcap")
+            row["truth"] = {**row["truth"], **full[stream][row["truth"]["frame"]]}
+            rows.append(row)
+    rows.sort(key=lambda r: (r["state"]["stream"], r["truth"]["frame"]))
+    return rows
+
+
 def quaternion_matrix(xyzw):
     x, y, z, w = xyzw
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -148,21 +172,8 @@ def main():
     parser.add_argument("--yaw-copies", type=int, default=4, help="as the node's model.yaw_copies (default 4)")
     parser.add_argument("--streams", default=",".join(STREAMS), help=f"comma-separated, of {', '.join(STREAMS)}")
     args = parser.parse_args()
-    manifest = json.loads((Path(args.bundle) / "manifest.json").read_text())
-    scale, points = manifest["training"]["scale"], manifest["sizes"]["points"]
-    session = onnxruntime.InferenceSession(str(Path(args.bundle) / "encoder.onnx"))
-    z_i_index = [o.name for o in session.get_outputs()].index("z_I_mean")
-
-    rows, full = [], {}
-    for n, line in enumerate(open(args.states)):
-        row = json.loads(line)
-        if row["truth"] is not None and n % args.every == 0:
-            stream = row["state"]["stream"]
-            if stream not in full:
-                full[stream] = ground_truth(Path(args.recordings) / f"{stream}.mcap")
-            row["truth"] = {**row["truth"], **full[stream][row["truth"]["frame"]]}
-            rows.append(row)
-    rows.sort(key=lambda r: (r["state"]["stream"], r["truth"]["frame"]))  # streams interleave
+    scale, points, session, z_i_index = encoder_of(args.bundle)
+    rows = sampled_rows(args.states, args.recordings, args.every)
     rng = np.random.default_rng(args.seed)
     streams = {name: [] for name in args.streams.split(",")}
     clouds = {}
