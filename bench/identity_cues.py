@@ -30,9 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from identity_domain import CROP, ROOT, box_centred, camera_clouds, encoder_of, farthest_points
-from identity_domain import largest_cluster, quaternion_matrix, sampled_rows, spread
-
-W = 10
+from identity_domain import largest_cluster, quaternion_matrix, sampled_rows, segments_of, spread
 
 
 def turn(yaw):
@@ -79,12 +77,7 @@ def fusion(args):
                     fused = np.concatenate([fused, fused[rng.choice(len(fused), points - len(fused))]])
                 clouds.append(box_centred(farthest_points(fused, points, rng) @ turn(poses[i][0]).T))
             z = encode(clouds)
-            segments, start = [], 0
-            for i in range(1, len(keys) + 1):
-                if i == len(keys) or keys[i][:2] != keys[start][:2]:
-                    segments.append((*keys[start], z[start:i]))
-                    start = i
-            for family, (within, between, found, count) in spread(segments).items():
+            for family, (within, between, found, count) in spread(segments_of(keys, z)).items():
                 print(f"{source:5s} K={k:3d} {family:10s} within {within:.4f} between {between:.4f} "
                       f"ratio {within / between:.2f} found {found:.2f} (of {count})", flush=True)
 
@@ -153,6 +146,7 @@ def height(args):
         h_found, h_total, h_false = height_score(holdout, settings)
         print(f"most found on tune with <= 1 false per 1,000: {settings}: tune {found}/{total}, {false:.2f}; "
               f"holdout {h_found}/{h_total}, {h_false:.2f}")
+
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

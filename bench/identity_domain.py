@@ -94,6 +94,17 @@ def spread(segments):
     return out
 
 
+def segments_of(keys, values):
+    """(stream, subject, family, values) per run of rows with one stream and subject: `keys` are
+    the rows' (stream, subject, family), `values` their codes, row by row."""
+    segments, start = [], 0
+    for i in range(1, len(keys) + 1):
+        if i == len(keys) or keys[i][:2] != keys[start][:2]:
+            segments.append((*keys[start], values[start:i]))
+            start = i
+    return segments
+
+
 def ground_truth(recording):
     """frame -> the sim's full ground truth (beta, theta, ...) from the recording's truth channel."""
     out = {}
@@ -231,12 +242,7 @@ def main():
           f"{args.yaw_copies} yaw copies")
     print(f"{'stream':16s} {'family':10s} {'within':>8s} {'between':>8s} {'ratio':>6s} {'found':>6s}")
     for name, values in z.items():
-        segments, start = [], 0
-        for i in range(1, len(keys) + 1):
-            if i == len(keys) or keys[i][:2] != keys[start][:2]:
-                segments.append((*keys[start], values[start:i]))
-                start = i
-        for family, (within, between, found, count) in spread(segments).items():
+        for family, (within, between, found, count) in spread(segments_of(keys, values)).items():
             print(f"{name:16s} {family:10s} {within:8.4f} {between:8.4f} {within / between:6.2f} "
                   f"{found:6.2f} (of {count})")
 

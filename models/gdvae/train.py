@@ -535,7 +535,7 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
     device = device or torch.device("cpu")
     size = len(bank["q"])
     copies = bank.get("copies", chosen.bank_copies)  # banks saved before it was recorded
-    if size % copies:
+    if vae.config.omega_view > 0 and size % copies:
         raise ValueError(f"the code bank has {size} entries, not a multiple of its {copies} copies per mesh")
     on_device = {key: bank[key].to(device) for key in ("q", "x_c", "spectrum")}
     vae.train()
