@@ -3,6 +3,8 @@
 # through the node by `gdvae-node evaluate`. Three sets of the same 12 scenarios with different
 # seeds: `tune` (settings are chosen on it), `holdout` (checked after tuning; one of its plots
 # prompted a design change, README says which) and `final` (measured once, nothing chosen on it).
+# `extra-N` (N = 1, 2, ...) are more held-apart seeds, for a choice between candidates whose
+# difference on `tune` is within what one set of 12 recordings can tell apart.
 #
 #   bench/tracking.sh SET [OUT_DIR] [-- evaluate options...]
 #
@@ -12,7 +14,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SET=${1:?usage: bench/tracking.sh tune|holdout|final [OUT_DIR] [-- evaluate options]}
+SET=${1:?usage: bench/tracking.sh tune|holdout|final|extra-N [OUT_DIR] [-- evaluate options]}
 shift
 OUT=${BENCH_DIR:-/work/data/bench-tracking}
 if [[ $# -gt 0 && $1 != "--" ]]; then OUT=$1; shift; fi
@@ -21,7 +23,8 @@ case $SET in
   tune) BASE=100 ;;
   holdout) BASE=200 ;;
   final) BASE=300 ;;
-  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout or final)" >&2; exit 2 ;;
+  extra-[1-9]|extra-[1-9][0-9]) BASE=$((1000 + 100 * ${SET#extra-})) ;;
+  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N)" >&2; exit 2 ;;
 esac
 
 SIM=./target/release/sim

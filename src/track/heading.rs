@@ -1,16 +1,21 @@
 //! Heading tracker: the subject's yaw about +z filtered over time from two measurements.
 //!
 //! - The encoder's yaw, every frame: noisy, and for near-symmetric bodies sometimes the back taken
-//!   for the front. It is used as an *axial* measurement (yaw modulo 180 degrees) for the angle, and
-//!   as one vote per frame on which way is forward (`heading_encoder_vote`).
+//!   for the front, now and then wild. It measures the angle (front or back, whichever it more
+//!   likely read) and votes once per frame on which way is forward (`heading_encoder_vote`).
 //! - The direction of motion of the object's centre, when it moves faster than a threshold: a
 //!   walking subject faces where it goes. It measures the angle and votes strongly on the sense.
 //!
-//! The angle and its rate are a constant-turn-rate Kalman filter; measurements far outside their
-//! expected spread are down-weighted (Huber), so a burst of bad frames bends the track little. The
-//! sense (front or back) is a log-odds accumulated from the votes and clamped: the track turns by
-//! 180 degrees only when the evidence against it outweighs what it has gathered, never because of
-//! one frame. Everything is causal: each estimate uses the frames up to it.
+//! The angle and its rate are a constant-turn-rate Kalman filter. The encoder's yaw is read as a
+//! mixture: the front as the track has it, the back taken for the front (`heading_back_share`), or
+//! a wild reading at any angle (`heading_wild_share`). A reading is used as the more likely of the
+//! first two, weighted by how likely it is to be that rather than wild, so a reading near 90
+//! degrees off, which fits neither, moves the track little instead of pulling it towards the back.
+//! The motion's direction, far outside its expected spread, is down-weighted (Huber). So a burst of
+//! bad frames bends the track little. The sense (front or back) is a log-odds accumulated from the
+//! votes and clamped: the track turns by 180 degrees only when the evidence against it outweighs
+//! what it has gathered, never because of one frame. Everything is causal: each estimate uses the
+//! frames up to it.
 
 use std::collections::VecDeque;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
@@ -22,8 +27,10 @@ use super::TrackSettings;
 const MOTION_VOTE: f64 = 1.0;
 /// Sense evidence a new track starts with: a few contrary frames may still turn it round.
 const INITIAL_SENSE: f64 = 1.0;
-/// Measurements beyond this many standard deviations of their innovation are down-weighted.
+/// Motion measurements beyond this many standard deviations of their innovation are down-weighted.
 const HUBER_SIGMAS: f64 = 2.5;
+/// Least weight of an encoder reading (its variance is divided by the weight).
+const MIN_ENCODER_WEIGHT: f64 = 1e-3;
 /// Rate uncertainty of a new track (rad/s).
 const INITIAL_RATE_STD: f64 = 1.0;
 /// Weight of each frame in the running mean of the encoder's frame-to-frame jitter (about 1 s at
@@ -117,6 +124,9 @@ pub struct HeadingFilter {
     motion_var: f64,
     max_sense: f64,
     encoder_vote: f64,
+    /// The encoder's reading as a mixture: shares of wild readings and of back-for-front ones.
+    wild_share: f64,
+    back_share: f64,
     motion: Motion,
     /// yaw, rate, covariance [[yy, yr], [ry, rr]], sense log-odds.
     state: Option<([f64; 2], [[f64; 2]; 2], f64)>,
@@ -138,6 +148,8 @@ impl HeadingFilter {
             motion_var: (settings.motion_heading_std_deg as f64).to_radians().powi(2),
             max_sense: settings.heading_flip_evidence as f64,
             encoder_vote: settings.heading_encoder_vote as f64,
+            wild_share: settings.heading_wild_share as f64,
+            back_share: settings.heading_back_share as f64,
             motion: Motion {
                 window_s: settings.motion_window_s as f64,
                 samples: VecDeque::new(),
@@ -219,12 +231,12 @@ impl HeadingFilter {
         }
         sense = sense.min(self.max_sense);
 
-        // Measurements: the encoder's axis, then the motion's direction (when it agrees on sense).
-        // The encoder's noise: as configured, or wider when it jitters more from frame to frame (an
-        // encoder that cannot tell this body's heading scatters over all angles).
-        let axial = wrap_axial(encoder_yaw - x[0]);
+        // Measurements: the encoder's reading, then the motion's direction (when it agrees on
+        // sense). The encoder's noise: as configured, or wider when it jitters more from frame to
+        // frame (an encoder that cannot tell this body's heading scatters over all angles).
         let encoder_var = self.encoder_variance();
-        Self::correct(&mut x, &mut p, axial, encoder_var);
+        let (innovation, weight) = self.encoder_reading(x[0], p[0][0], encoder_yaw, encoder_var);
+        Self::kalman(&mut x, &mut p, innovation, encoder_var / weight.max(MIN_ENCODER_WEIGHT));
         if let Some((m, variance)) = motion {
             let innovation = wrap(m - x[0]);
             if innovation.abs() < FRAC_PI_2 {
@@ -241,6 +253,31 @@ impl HeadingFilter {
         self.measurement_var.max(self.jitter_power / 2.0)
     }
 
+    /// The encoder's reading of a track at `yaw` (variance `yaw_var`) as (innovation, weight): the
+    /// innovation to the front, or to the back if the reading more likely took the back for the
+    /// front, and the probability that it is that and not a wild reading.
+    fn encoder_reading(&self, yaw: f64, yaw_var: f64, encoder_yaw: f64, encoder_var: f64) -> (f64, f64) {
+        let spread = yaw_var + encoder_var;
+        let front = wrap(encoder_yaw - yaw);
+        let back = wrap(front - PI);
+        // Log-likelihoods of the two readings, less their common factor (1 - wild share) times the
+        // normal density's normalizer: in logs, so that neither underflows far from the track.
+        let log_front = (1.0 - self.back_share).ln() - 0.5 * front * front / spread;
+        let log_back = self.back_share.ln() - 0.5 * back * back / spread;
+        let (innovation, best, other) = if log_front >= log_back {
+            (front, log_front, log_back)
+        } else {
+            (back, log_back, log_front)
+        };
+        // Wild readings' density (uniform on the circle) over the chosen reading's.
+        let wild = if self.wild_share > 0.0 {
+            self.wild_share / TAU * (TAU * spread).sqrt() / (1.0 - self.wild_share) * (-best).exp()
+        } else {
+            0.0
+        };
+        (innovation, 1.0 / (1.0 + (other - best).exp() + wild))
+    }
+
     /// Kalman update of the angle with a robustly weighted scalar innovation.
     fn correct(x: &mut [f64; 2], p: &mut [[f64; 2]; 2], innovation: f64, variance: f64) {
         let spread = p[0][0] + variance;
@@ -251,6 +288,11 @@ impl HeadingFilter {
         } else {
             variance
         };
+        Self::kalman(x, p, innovation, variance);
+    }
+
+    /// Kalman update of the angle with a scalar innovation of the given variance.
+    fn kalman(x: &mut [f64; 2], p: &mut [[f64; 2]; 2], innovation: f64, variance: f64) {
         let s = p[0][0] + variance;
         let k = [p[0][0] / s, p[1][0] / s];
         x[0] += k[0] * innovation;

@@ -96,6 +96,11 @@ pub struct TrackSettings {
     /// Front/back evidence one encoder frame adds (log-odds; a walking frame adds 1), before it is
     /// scaled down for an encoder that jitters more than `heading_std_deg`.
     pub heading_encoder_vote: f32,
+    /// Share of encoder yaws taken to be wild (any angle): a reading that fits neither the track's
+    /// front nor its back moves it little.
+    pub heading_wild_share: f32,
+    /// Share of the other encoder yaws taken to read the back for the front.
+    pub heading_back_share: f32,
 }
 
 impl Default for TrackSettings {
@@ -121,6 +126,8 @@ impl Default for TrackSettings {
             motion_heading_std_deg: 20.0,
             heading_flip_evidence: 6.0,
             heading_encoder_vote: 0.5,
+            heading_wild_share: 0.1,
+            heading_back_share: 0.05,
         }
     }
 }
@@ -146,6 +153,15 @@ impl TrackSettings {
         for (name, value) in positive {
             if !(value > 0.0 && value.is_finite()) {
                 return Err(format!("track.{name} = {value} must be positive and finite"));
+            }
+        }
+        let shares = [
+            ("heading_wild_share", self.heading_wild_share, 1.0),
+            ("heading_back_share", self.heading_back_share, 0.5),
+        ];
+        for (name, value, below) in shares {
+            if !(value >= 0.0 && value < below) {
+                return Err(format!("track.{name} = {value} must be at least 0 and below {below}"));
             }
         }
         if self.switch_frames == 0 {
