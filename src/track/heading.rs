@@ -74,12 +74,23 @@ pub struct Heading {
     pub turned_round: bool,
 }
 
-/// Velocity of the object's centre: least-squares slope of the positions over a sliding window.
+/// Velocity of the object's centre: least-squares slope of the positions over a sliding window,
+/// given only when the motion is steady: each half of the window moves at least
+/// `STEADY_SPEED_SHARE` of the threshold speed, and the two halves' directions differ by less than
+/// `STEADY_MAX_TURN`. The centre of a partial view jumps when the visible part of a body changes;
+/// over a window such a jump looks like a walk, but it lies in one half (or between them, where
+/// neither half moves).
 #[derive(Debug, Clone)]
 struct Motion {
     window_s: f64,
+    min_speed: f64,
     samples: VecDeque<(f64, f64, f64)>,
 }
+
+/// Least speed of each half of the motion window, as a share of the threshold speed.
+const STEADY_SPEED_SHARE: f64 = 0.5;
+/// Most angle between the directions of the two halves of the motion window (radians: 45 deg).
+const STEADY_MAX_TURN: f64 = std::f64::consts::FRAC_PI_4;
 
 impl Motion {
     fn push(&mut self, t: f64, x: f64, y: f64) -> Option<(f64, f64)> {
@@ -87,32 +98,39 @@ impl Motion {
         while self.samples.front().is_some_and(|(t0, _, _)| t - t0 > self.window_s) {
             self.samples.pop_front();
         }
-        let n = self.samples.len() as f64;
         let span = t - self.samples.front()?.0;
         if self.samples.len() < 4 || span < 0.6 * self.window_s {
             return None;
         }
-        let mean_t = self.samples.iter().map(|s| s.0).sum::<f64>() / n;
-        let mean_x = self.samples.iter().map(|s| s.1).sum::<f64>() / n;
-        let mean_y = self.samples.iter().map(|s| s.2).sum::<f64>() / n;
-        let stt: f64 = self.samples.iter().map(|s| (s.0 - mean_t).powi(2)).sum();
-        if stt <= 0.0 {
-            return None;
-        }
-        let vx = self
-            .samples
-            .iter()
-            .map(|s| (s.0 - mean_t) * (s.1 - mean_x))
-            .sum::<f64>()
-            / stt;
-        let vy = self
-            .samples
-            .iter()
-            .map(|s| (s.0 - mean_t) * (s.2 - mean_y))
-            .sum::<f64>()
-            / stt;
-        Some((vx, vy))
+        let velocity = slope(self.samples.iter())?;
+        let middle = t - span / 2.0;
+        let first = slope(self.samples.iter().filter(|s| s.0 <= middle))?;
+        let second = slope(self.samples.iter().filter(|s| s.0 > middle))?;
+        let least = STEADY_SPEED_SHARE * self.min_speed;
+        let turn = wrap(first.1.atan2(first.0) - second.1.atan2(second.0)).abs();
+        (first.0.hypot(first.1) >= least && second.0.hypot(second.1) >= least && turn < STEADY_MAX_TURN)
+            .then_some(velocity)
     }
+}
+
+/// Least-squares slope (vx, vy) of positions over time; None for fewer than 3 samples or no spread
+/// in time.
+fn slope<'a>(samples: impl Iterator<Item = &'a (f64, f64, f64)> + Clone) -> Option<(f64, f64)> {
+    let n = samples.clone().count();
+    if n < 3 {
+        return None;
+    }
+    let n = n as f64;
+    let mean_t = samples.clone().map(|s| s.0).sum::<f64>() / n;
+    let mean_x = samples.clone().map(|s| s.1).sum::<f64>() / n;
+    let mean_y = samples.clone().map(|s| s.2).sum::<f64>() / n;
+    let stt: f64 = samples.clone().map(|s| (s.0 - mean_t).powi(2)).sum();
+    if stt <= 0.0 {
+        return None;
+    }
+    let vx = samples.clone().map(|s| (s.0 - mean_t) * (s.1 - mean_x)).sum::<f64>() / stt;
+    let vy = samples.map(|s| (s.0 - mean_t) * (s.2 - mean_y)).sum::<f64>() / stt;
+    Some((vx, vy))
 }
 
 #[derive(Debug, Clone)]
@@ -152,6 +170,7 @@ impl HeadingFilter {
             back_share: settings.heading_back_share as f64,
             motion: Motion {
                 window_s: settings.motion_window_s as f64,
+                min_speed: settings.motion_min_speed_mps as f64,
                 samples: VecDeque::new(),
             },
             state: None,

@@ -111,7 +111,7 @@ impl Default for TrackSettings {
             min_shape_variance: 4e-4,
             shape_variance_scale: 2.2,
             change_detector: ChangeDetector::Cusum,
-            cusum_drift: 2.0,
+            cusum_drift: 3.0,
             cusum_threshold: 10.0,
             smoothing: Smoothing::OneEuro,
             min_cutoff_hz: 1.0,

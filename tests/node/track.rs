@@ -514,6 +514,37 @@ fn a_burst_of_readings_that_fit_neither_front_nor_back_bends_the_track_little() 
 }
 
 #[test]
+fn a_jump_of_the_centre_of_a_subject_standing_still_is_not_a_walk() {
+    // The centre of a partial view jumps when the visible part of the body changes: here 0.35 m
+    // backwards at frame 90, while the subject stands facing +x and the encoder reads it right.
+    // Over a 1-s window the jump looks like a walk backwards at about 0.5 m/s; taken as one, its
+    // votes would turn the track round.
+    let settings = TrackSettings::default();
+    let mut filter = HeadingFilter::new(&settings);
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    let noise = Normal::new(0.0, 10f64.to_radians()).unwrap();
+    let position_noise = Normal::new(0.0, 0.01).unwrap();
+    let truth = 0.0;
+    for step in 0..200 {
+        let x = if step < 90 { 0.0 } else { -0.35 };
+        let centre = [x + position_noise.sample(&mut rng), position_noise.sample(&mut rng)];
+        let heading = filter.update(truth + noise.sample(&mut rng), centre, DT);
+        assert!(
+            heading.motion_yaw.is_none(),
+            "step {step}: motion at {:?}",
+            heading.motion_yaw
+        );
+        if step >= 30 {
+            assert!(
+                wrap_deg(heading.yaw - truth).abs() < 20.0,
+                "step {step}: track at {:.1} deg",
+                heading.yaw.to_degrees()
+            );
+        }
+    }
+}
+
+#[test]
 fn a_walking_subject_is_faced_the_way_it_walks_even_when_the_encoder_says_backwards() {
     // Walking along +x then curving, the encoder consistently 180 degrees off (a body the encoder
     // reads back to front): the motion votes turn the track round within about a second.
