@@ -113,11 +113,11 @@ impl Motion {
     }
 }
 
-/// Least-squares slope (vx, vy) of positions over time; None for fewer than 3 samples or no spread
-/// in time.
+/// Least-squares slope (vx, vy) of positions over time; None for fewer than 2 samples or no spread
+/// in time (a half window at a low frame rate may hold only 2).
 fn slope<'a>(samples: impl Iterator<Item = &'a (f64, f64, f64)> + Clone) -> Option<(f64, f64)> {
     let n = samples.clone().count();
-    if n < 3 {
+    if n < 2 {
         return None;
     }
     let n = n as f64;
