@@ -19,7 +19,7 @@ use rand::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::family::{BetaParameter, Family, PoseMode, Subject, SubjectError};
+use crate::family::{BetaParameter, Family, PoseDraw, PoseMode, Subject, SubjectError};
 use crate::ply::write_ply;
 use crate::seeds;
 use crate::skinning::place;
@@ -39,6 +39,11 @@ pub struct DatasetSpec {
     /// Rotate each mesh by a uniform random yaw about z (recorded in the ground truth). Off by
     /// default: the training kit applies its own random rotations.
     pub random_yaw: bool,
+    /// Paired data: pose `j` of every subject of a family is one draw ([`PoseDraw`]), so the
+    /// dataset is a subjects x poses grid in which a row shares the subject and a column the pose
+    /// (the ground truth's `pose_id` names the column). Off: every mesh draws its own pose.
+    #[serde(default)]
+    pub shared_poses: bool,
     pub target_vertices: usize,
     pub seed: u64,
 }
@@ -128,6 +133,10 @@ pub struct GroundTruth {
     pub theta: Vec<f64>,
     /// Rotation about +z applied after posing, radians.
     pub yaw: f64,
+    /// With shared poses, the pose's name within the dataset (`<family>-pose-<index>`): meshes with
+    /// the same `pose_id` are different subjects in the same pose. Absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_id: Option<String>,
     pub seed: u64,
     pub vertices: usize,
     pub triangles: usize,
@@ -135,6 +144,25 @@ pub struct GroundTruth {
 
 pub fn subject_id(family: Family, index: usize) -> String {
     format!("{}-{index:04}", family.name())
+}
+
+pub fn pose_id(family: Family, index: usize) -> String {
+    format!("{}-pose-{index:03}", family.name())
+}
+
+/// The pose of column `pose_index` of a family's grid, drawn once for every subject (shared poses):
+/// its own seed, so it does not depend on which subjects are generated.
+pub fn shared_pose(spec: &DatasetSpec, family: Family, pose_index: usize) -> PoseDraw {
+    let mut rng = seeds::rng(seeds::derive(
+        spec.seed,
+        &[family as u64, u64::MAX - 1, pose_index as u64],
+    ));
+    let mode = if rng.random_bool(spec.bent_fraction) {
+        PoseMode::Bent
+    } else {
+        PoseMode::Gaussian
+    };
+    PoseDraw::sample(family, mode, &mut rng)
 }
 
 /// Assigns each subject index of a family to a split (a seeded shuffle, then the fractions).
@@ -235,6 +263,18 @@ pub fn write_dataset(
         })
         .collect();
 
+    let shared_poses: std::collections::HashMap<Family, Vec<PoseDraw>> = spec
+        .families
+        .iter()
+        .filter(|_| spec.shared_poses)
+        .map(|&family| {
+            let draws = (0..spec.poses_per_subject)
+                .map(|j| shared_pose(spec, family, j))
+                .collect();
+            (family, draws)
+        })
+        .collect();
+
     let per_subject: Result<Vec<Vec<(GroundTruth, u64)>>, DatasetError> = jobs
         .par_iter()
         .map(|&(family, index, split)| {
@@ -251,12 +291,17 @@ pub fn write_dataset(
             for pose_index in 0..spec.poses_per_subject {
                 let seed = seeds::derive(spec.seed, &[family as u64, index as u64, pose_index as u64]);
                 let mut rng = seeds::rng(seed);
-                let pose_mode = if rng.random_bool(spec.bent_fraction) {
-                    PoseMode::Bent
+                let (pose_mode, theta) = if spec.shared_poses {
+                    let draw = &shared_poses[&family][pose_index];
+                    (draw.mode, subject.theta_of(draw))
                 } else {
-                    PoseMode::Gaussian
+                    let pose_mode = if rng.random_bool(spec.bent_fraction) {
+                        PoseMode::Bent
+                    } else {
+                        PoseMode::Gaussian
+                    };
+                    (pose_mode, subject.sample_theta(pose_mode, &mut rng))
                 };
-                let theta = subject.sample_theta(pose_mode, &mut rng);
                 let yaw = if spec.random_yaw {
                     rng.random_range(-std::f64::consts::PI..std::f64::consts::PI)
                 } else {
@@ -289,6 +334,7 @@ pub fn write_dataset(
                         beta: subject.beta.clone(),
                         theta,
                         yaw,
+                        pose_id: spec.shared_poses.then(|| pose_id(family, pose_index)),
                         seed,
                         vertices: mesh.positions.len(),
                         triangles: mesh.triangles.len(),

@@ -168,6 +168,10 @@ enum Command {
         /// Rotate each mesh by a random yaw about the up axis (recorded in the ground truth).
         #[arg(long)]
         random_yaw: bool,
+        /// Paired data: pose j is one draw shared by every subject of a family (a subjects x poses
+        /// grid; the ground truth's `pose_id` names the pose), for supervised training.
+        #[arg(long)]
+        shared_poses: bool,
         /// Vertices per mesh (the decimation target).
         #[arg(long, default_value_t = DEFAULT_VERTEX_COUNT)]
         vertices: usize,
@@ -371,6 +375,7 @@ fn run(command: Command) -> Result<()> {
             bent_fraction,
             split,
             random_yaw,
+            shared_poses,
             vertices,
             seed,
         } => {
@@ -384,6 +389,7 @@ fn run(command: Command) -> Result<()> {
                 bent_fraction,
                 split: [train, validation, test],
                 random_yaw,
+                shared_poses,
                 target_vertices: vertices,
                 seed,
             };

@@ -310,13 +310,20 @@ impl Subject {
     /// a smaller twist about it, scaled by the joint's mobility, within the joint's anatomical
     /// limit (a hinge bends about its limb axis only, one way; any joint turns at most its range).
     pub fn sample_theta(&self, mode: PoseMode, rng: &mut impl Rng) -> Vec<f64> {
-        let sigma = mode.bend_sigma();
+        self.theta_of(&PoseDraw::sample(self.family, mode, rng))
+    }
+
+    /// This subject's theta for a pose drawn once for its family ([`PoseDraw`]): the same bends,
+    /// about this subject's own bone and limb axes, within the same limits, so that one draw gives
+    /// every subject of a family the same pose.
+    pub fn theta_of(&self, draw: &PoseDraw) -> Vec<f64> {
+        assert_eq!(draw.family, self.family, "a pose drawn for another family");
+        let sigma = draw.mode.bend_sigma();
         let mut theta = Vec::with_capacity(self.pose_dimension());
-        for joint in 1..self.skeleton.len() {
+        for (joint, normals) in (1..self.skeleton.len()).zip(&draw.joints) {
             let limit = self.family.joint_limit(self.skeleton.joints[joint].name);
             if let JointLimit::Hinge { sign, max } = limit {
-                let normal: f64 = StandardNormal.sample(rng);
-                let angle = (sigma * self.mobility[joint] * normal.abs()).min(max);
+                let angle = (sigma * self.mobility[joint] * normals[0].abs()).min(max);
                 theta.extend_from_slice((sign * angle * self.skeleton.limb_axis(joint)).as_slice());
                 continue;
             }
@@ -330,10 +337,9 @@ impl Subject {
                 .try_normalize(1e-9)
                 .unwrap_or_else(Vector3::x);
             let across_too = along.cross(&across);
-            let mut normal = || -> f64 { StandardNormal.sample(rng) };
             let scale = sigma * self.mobility[joint];
             let mut rotation =
-                scale * (normal() * across + normal() * across_too) + TWIST_TO_BEND * scale * normal() * along;
+                scale * (normals[0] * across + normals[1] * across_too) + TWIST_TO_BEND * scale * normals[2] * along;
             if let JointLimit::Ball { max } = limit {
                 if rotation.norm() > max {
                     rotation *= max / rotation.norm();
@@ -342,5 +348,31 @@ impl Subject {
             theta.extend_from_slice(rotation.as_slice());
         }
         theta
+    }
+}
+
+/// One pose of a family's prior, independent of any subject: the mode and, per non-root joint, the
+/// standard normals that [`Subject::theta_of`] scales by the joint's mobility and turns about the
+/// subject's axes (a hinge uses the first; a ball joint all three: across, across again, twist).
+/// Drawn in the order `sample_theta` always drew them, so a subject's poses are unchanged.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PoseDraw {
+    pub family: Family,
+    pub mode: PoseMode,
+    pub joints: Vec<[f64; 3]>,
+}
+
+impl PoseDraw {
+    pub fn sample(family: Family, mode: PoseMode, rng: &mut impl Rng) -> Self {
+        let skeleton = family.reference_skeleton();
+        let mut normal = || -> f64 { StandardNormal.sample(rng) };
+        let joints = skeleton.joints[1..]
+            .iter()
+            .map(|joint| match family.joint_limit(joint.name) {
+                JointLimit::Hinge { .. } => [normal(), 0.0, 0.0],
+                JointLimit::Ball { .. } => [normal(), normal(), normal()],
+            })
+            .collect();
+        Self { family, mode, joints }
     }
 }

@@ -2,7 +2,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use gdvae_sim::dataset::{DatasetSpec, GroundTruth, Split};
+use gdvae_sim::dataset::{shared_pose, DatasetSpec, GroundTruth, Split};
 use gdvae_sim::family::Subject;
 use gdvae_sim::skinning::place;
 use nalgebra::Vector3;
@@ -111,6 +111,90 @@ fn ground_truth_regenerates_every_mesh_and_splits_are_subject_disjoint() {
     assert_eq!(description["units"], "metre");
     assert_eq!(description["up_axis"], "z");
     assert_eq!(description["families"]["quadruped"]["theta_dimension"], 57);
+}
+
+/// Largest difference between two thetas, radians per component.
+fn theta_gap(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+}
+
+#[test]
+fn shared_poses_make_a_grid_of_subjects_by_poses() {
+    let (dir, unpaired) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let mut spec = small_spec(31);
+    spec.subjects_per_family = 3;
+    spec.poses_per_subject = 3;
+    spec.random_yaw = false;
+    spec.shared_poses = true;
+    write_small(&spec, dir.path());
+    let truth = read_truth(dir.path());
+    assert_eq!(truth.len(), spec.mesh_count());
+
+    let mut subjects: BTreeMap<String, Subject> = BTreeMap::new();
+    let mut columns: BTreeMap<String, Vec<&GroundTruth>> = BTreeMap::new();
+    for record in &truth {
+        let pose_id = record.pose_id.clone().expect("shared poses name their pose");
+        assert_eq!(
+            pose_id,
+            format!("{}-pose-{:03}", record.family.name(), record.pose_index)
+        );
+        // The recorded theta is this subject's reading of the family's one draw for the column.
+        let subject = subjects.entry(record.subject.clone()).or_insert_with(|| {
+            Subject::with_vertex_count(record.family, record.beta.clone(), spec.target_vertices).unwrap()
+        });
+        let draw = shared_pose(&spec, record.family, record.pose_index);
+        assert_eq!(record.pose_mode, draw.mode);
+        assert_eq!(record.theta, subject.theta_of(&draw), "{}", record.file);
+        columns.entry(pose_id).or_default().push(record);
+    }
+    assert_eq!(columns.len(), 2 * spec.poses_per_subject);
+    for (pose_id, column) in &columns {
+        // Every subject of the family in this pose, each once, each with its own beta.
+        let names: BTreeSet<&String> = column.iter().map(|r| &r.subject).collect();
+        assert_eq!(names.len(), spec.subjects_per_family, "{pose_id}");
+        assert!(
+            column.windows(2).all(|w| w[0].beta != w[1].beta),
+            "{pose_id}: subjects share a beta"
+        );
+        // Same pose: the subjects' thetas differ only by their own bone axes, far less than the
+        // thetas of two different poses of one subject do.
+        let within = column
+            .windows(2)
+            .map(|w| theta_gap(&w[0].theta, &w[1].theta))
+            .fold(0.0, f64::max);
+        let across = truth
+            .iter()
+            .filter(|r| r.subject == column[0].subject && r.pose_id.as_ref() != Some(pose_id))
+            .map(|r| theta_gap(&r.theta, &column[0].theta))
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            within < 0.1 && within < 0.25 * across,
+            "{pose_id}: within {within} rad, across {across} rad"
+        );
+    }
+    for record in &truth {
+        let rows: Vec<&GroundTruth> = truth.iter().filter(|r| r.subject == record.subject).collect();
+        assert!(
+            rows.iter().all(|r| r.beta == record.beta),
+            "{}: a subject's beta varies",
+            record.subject
+        );
+        assert_eq!(rows.len(), spec.poses_per_subject);
+    }
+
+    // Without shared poses nothing names a pose, and the subjects' poses are their own.
+    spec.shared_poses = false;
+    write_small(&spec, unpaired.path());
+    let unpaired = read_truth(unpaired.path());
+    assert!(unpaired.iter().all(|r| r.pose_id.is_none()));
+    let first: Vec<&GroundTruth> = unpaired
+        .iter()
+        .filter(|r| r.pose_index == 0 && r.family == truth[0].family)
+        .collect();
+    assert!(
+        theta_gap(&first[0].theta, &first[1].theta) > 0.1,
+        "unshared poses differ"
+    );
 }
 
 #[test]

@@ -40,6 +40,7 @@ pub fn small_spec(seed: u64) -> DatasetSpec {
         bent_fraction: 0.5,
         split: [0.5, 0.25, 0.25],
         random_yaw: true,
+        shared_poses: false,
         target_vertices: 2000,
         seed,
     }
