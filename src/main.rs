@@ -641,6 +641,15 @@ fn print_evaluation(report: &gdvae_node::evaluate::Report, summary: &RunSummary)
             s.same_family_changes
         );
     }
+    let p = &o.pose_code;
+    println!(
+        "  pose code z_E, frame-to-frame step: walking median {} ({} steps), standing {} ({} steps), ratio {}",
+        fmt_opt(p.walking_step_median, 1.0, 4),
+        p.walking_steps,
+        fmt_opt(p.standing_step_median, 1.0, 4),
+        p.standing_steps,
+        fmt_opt(p.ratio, 1.0, 2)
+    );
     let states: u64 = summary.snapshot.streams.values().map(|c| c.published).sum();
     println!(
         "  replay: {states} states in {:.1} s ({:.1} frames/s)",

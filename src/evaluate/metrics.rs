@@ -317,3 +317,50 @@ pub fn separability(segments: &[Segment], frames: usize) -> Separability {
         found_at_p999_same_family: found(&between_same),
     }
 }
+
+/// A subject walks when its true position moves faster than this (m/s), and stands when slower
+/// than `STANDING_SPEED_M_S`; frames in between (a walk slowing to turn) count as neither.
+pub const WALKING_SPEED_M_S: f64 = 0.15;
+pub const STANDING_SPEED_M_S: f64 = 0.03;
+
+/// Whether the pose code z_E follows the body (issue 32): its frame-to-frame steps while the subject
+/// walks (a gait changes the pose every frame) against while it stands (its pose drifts slowly).
+/// A z_E that carries nothing steps alike in both, and its ratio is about 1; a dead one (every
+/// step zero) has none.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct PoseCodeMotion {
+    pub walking_steps: usize,
+    pub standing_steps: usize,
+    /// Median Euclidean distance between the raw z_E of consecutive frames of one subject.
+    pub walking_step_median: Option<f64>,
+    pub standing_step_median: Option<f64>,
+    /// walking median over standing median.
+    pub ratio: Option<f64>,
+}
+
+/// `steps`: per pair of consecutive frames of one subject, the raw z_E step and the subject's true
+/// horizontal speed (m/s).
+pub fn pose_code_motion(steps: &[(f64, f64)]) -> PoseCodeMotion {
+    let walking = sorted(steps.iter().filter(|(_, v)| *v > WALKING_SPEED_M_S).map(|(s, _)| *s));
+    let standing = sorted(steps.iter().filter(|(_, v)| *v < STANDING_SPEED_M_S).map(|(s, _)| *s));
+    let walking_step_median = quantile(&walking, 0.5);
+    let standing_step_median = quantile(&standing, 0.5);
+    PoseCodeMotion {
+        walking_steps: walking.len(),
+        standing_steps: standing.len(),
+        walking_step_median,
+        standing_step_median,
+        ratio: walking_step_median
+            .zip(standing_step_median)
+            .and_then(|(w, s)| (s > 0.0).then(|| w / s)),
+    }
+}
+
+/// The Euclidean distance between two codes.
+pub fn code_step(a: &[f32], b: &[f32]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (*x as f64 - *y as f64).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}

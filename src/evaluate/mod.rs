@@ -25,7 +25,7 @@ use serde::Serialize;
 
 use crate::config::SourceSettings;
 use crate::state::{Output, State};
-use metrics::{AngleErrors, Changes, Distances, Retrieval, Segment, Separability};
+use metrics::{AngleErrors, Changes, Distances, PoseCodeMotion, Retrieval, Segment, Separability};
 use truth::TruthFrame;
 
 pub const CONVENTION: &str =
@@ -144,8 +144,13 @@ pub struct RecordingReport {
     pub changes_reported: usize,
     /// Frame-to-frame steps of the filtered yaw: its smoothness, with or without truth.
     pub filtered_yaw_steps: AngleErrors,
+    /// The raw z_E's frame-to-frame steps while the subject walks and while it stands.
+    pub pose_code: Option<PoseCodeMotion>,
     #[serde(skip)]
     pub rows: Vec<Row>,
+    /// Per pair of consecutive matched frames of one subject: (raw z_E step, true speed in m/s).
+    #[serde(skip)]
+    pub pose_steps: Vec<(f64, f64)>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -162,6 +167,8 @@ pub struct Overall {
     pub retrieval: Vec<Retrieval>,
     /// How well the encoder's z_I alone tells subjects apart: the bound on change detection.
     pub separability: Vec<Separability>,
+    /// Whether z_E follows the gait: its steps while walking against while standing.
+    pub pose_code: PoseCodeMotion,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -189,6 +196,7 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
     let mut raw_family: BTreeMap<String, Vec<f64>> = BTreeMap::new();
     let mut filtered_family: BTreeMap<String, Vec<f64>> = BTreeMap::new();
     let mut changes_all = Changes::default();
+    let mut pose_steps_all = Vec::new();
     for recording in recordings {
         let own = states.get(recording.stream.as_str()).cloned().unwrap_or_default();
         let (report, own_segments) = recording_report(
@@ -213,6 +221,7 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
             position_all.push(row.position_m);
         }
         segments.extend(own_segments);
+        pose_steps_all.extend_from_slice(&report.pose_steps);
         if let Some(changes) = &report.changes {
             changes_all.add(changes);
         }
@@ -243,6 +252,7 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
             .iter()
             .map(|n| metrics::separability(&segments, *n))
             .collect(),
+        pose_code: metrics::pose_code_motion(&pose_steps_all),
     };
     Report {
         schema: "gdvae.evaluate/1",
@@ -283,10 +293,21 @@ fn recording_report(
     let mut segments: Vec<Segment> = Vec::new();
     let mut matched_truth = vec![false; truth.len()];
     let mut reported_at = Vec::new();
+    let mut pose_steps = Vec::new();
+    let mut previous: Option<(usize, &State)> = None;
     for state in states {
         let Some(&(index, t)) = state.stamps.sensor_ns.and_then(|s| by_stamp.get(&s)) else {
             continue;
         };
+        if let Some((before, earlier)) = previous.filter(|(i, _)| *i + 1 == index && truth[*i].subject == t.subject) {
+            let seconds = t.stamp_nanos.saturating_sub(truth[before].stamp_nanos) as f64 * 1e-9;
+            let moved = (t.translation[0] - truth[before].translation[0])
+                .hypot(t.translation[1] - truth[before].translation[1]);
+            if seconds > 0.0 {
+                pose_steps.push((metrics::code_step(&state.raw.z_e, &earlier.raw.z_e), moved / seconds));
+            }
+        }
+        previous = Some((index, state));
         matched_truth[index] = true;
         if state.event.is_some() {
             reported_at.push(index);
@@ -345,7 +366,9 @@ fn recording_report(
             .then(|| metrics::match_changes(&true_at, &reported_at, options.tolerance_frames, truth.len())),
         changes_reported: states.iter().filter(|s| s.event.is_some()).count(),
         filtered_yaw_steps: metrics::angle_steps(&yaws),
+        pose_code: has_truth.then(|| metrics::pose_code_motion(&pose_steps)),
         rows,
+        pose_steps,
     };
     (report, segments)
 }

@@ -3,7 +3,9 @@
 
 use std::path::Path;
 
-use gdvae_node::evaluate::metrics::{angle_errors, match_changes, retrieval, separability, Segment};
+use gdvae_node::evaluate::metrics::{
+    angle_errors, code_step, match_changes, pose_code_motion, retrieval, separability, Segment,
+};
 
 use crate::helpers::repo;
 
@@ -205,8 +207,18 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
     let found = r["changes"]["found"].as_u64().unwrap();
     let false_changes = r["changes"]["false_changes"].as_u64().unwrap();
     assert_eq!(found + false_changes, r["changes"]["reported"].as_u64().unwrap());
+    // z_E steps: one per pair of consecutive frames of one subject (58 of a 60-frame walk with one
+    // switch, fewer when a frame was rejected), each walking, standing or neither by the true speed.
+    let pose = &r["pose_code"];
+    let counted = pose["walking_steps"].as_u64().unwrap() + pose["standing_steps"].as_u64().unwrap();
+    assert!(counted > 0 && counted <= 58, "{pose}");
+    assert!(
+        pose["walking_step_median"].as_f64().is_some(),
+        "a walk has walking steps: {pose}"
+    );
     // Without truth: what can be said without it, and no change counts against truth.
     let bare = &recordings[1];
+    assert!(bare["pose_code"].is_null(), "speed needs truth");
     assert_eq!(bare["has_truth"], false);
     assert!(bare["changes"].is_null() && bare["heading_filtered"].is_null());
     assert_eq!(bare["states"], states, "the same frames replay");
@@ -253,4 +265,21 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
     let subjects: std::collections::BTreeSet<&str> =
         lines.iter().filter_map(|l| l["truth"]["subject"].as_str()).collect();
     assert_eq!(subjects.len(), 2, "both subjects' frames carry their subject");
+}
+
+#[test]
+fn pose_code_motion_compares_steps_while_walking_with_steps_while_standing() {
+    // (step, speed m/s): walking above 0.15 m/s, standing below 0.03, the rest neither.
+    let steps = [(0.5, 1.0), (0.7, 0.8), (0.9, 0.2), (0.1, 0.0), (0.3, 0.01), (5.0, 0.1)];
+    let p = pose_code_motion(&steps);
+    assert_eq!((p.walking_steps, p.standing_steps), (3, 2));
+    assert_eq!(p.walking_step_median, Some(0.7));
+    assert!((p.standing_step_median.unwrap() - 0.2).abs() < 1e-12);
+    assert!((p.ratio.unwrap() - 3.5).abs() < 1e-9, "{p:?}");
+    // A dead code steps by nothing: no ratio. One that ignores the gait: about 1.
+    let dead = pose_code_motion(&[(0.0, 1.0), (0.0, 0.0)]);
+    assert_eq!((dead.walking_step_median, dead.ratio), (Some(0.0), None));
+    assert_eq!(pose_code_motion(&[(0.2, 1.0), (0.2, 0.0)]).ratio, Some(1.0));
+    assert_eq!(pose_code_motion(&[]).ratio, None);
+    assert!((code_step(&[0.0, 3.0], &[4.0, 0.0]) - 5.0).abs() < 1e-12);
 }
