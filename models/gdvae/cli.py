@@ -69,7 +69,7 @@ def train_command(args) -> int:
     from .data import load_dataset
     from .spectral_report import dataset_spectra
     from .spectrum import SpectrumCache
-    from .train import StageLimits, recipe, train
+    from .train import StageLimits, recipe, source_model_units, train, use_model_units
 
     chosen = recipe(args.recipe, regime=args.regime, kind=args.ae)
     if args.ae_iterations is not None:
@@ -87,6 +87,9 @@ def train_command(args) -> int:
     chosen.ae.supervised = not args.unsupervised
     chosen.ae.full_rotations = args.full_rotations
     dataset = load_dataset(args.dataset, limit=args.limit)
+    if args.init_from and chosen.model_units is None:
+        chosen.model_units = source_model_units(args.init_from)
+    use_model_units(dataset, chosen.model_units)
     log.info("%s: %d meshes (%d train), scale %.4f model units per input unit", args.dataset, len(dataset.meshes),
              len(dataset.indices("train")), dataset.scale)
     spectra = dataset_spectra(dataset, chosen.spectrum_count, SpectrumCache(Path(args.dataset) / ".spectra"))
@@ -149,7 +152,7 @@ def evaluate_command(args) -> int:
     from .evaluate import evaluate
     from .spectral_report import dataset_spectra
     from .spectrum import SpectrumCache
-    from .train import load_run
+    from .train import load_run, source_model_units, use_model_units
 
     chosen, ae, vae, state = load_run(args.run)
     if args.ae_only:
@@ -164,6 +167,7 @@ def evaluate_command(args) -> int:
     if args.partial_views < 0:
         raise ValueError(f"--partial-views must be 0 or more, got {args.partial_views}")
     dataset = load_dataset(args.dataset, limit=args.limit)
+    use_model_units(dataset, source_model_units(args.run))
     spectra = None
     if vae is not None:
         spectra = dataset_spectra(dataset, vae.config.spectrum, SpectrumCache(Path(args.dataset) / ".spectra"))
@@ -210,7 +214,7 @@ def trained_iterations(run: Path, chosen) -> dict:
 
 def export_command(args) -> int:
     from .export import write_bundle
-    from .train import dataset_summary, load_run
+    from .train import dataset_summary, load_run, source_model_units, use_model_units
 
     chosen, ae, vae, state = load_run(args.run)
     # A run still training has a VAE checkpoint, not a trained VAE: a bundle is made of finished
@@ -224,7 +228,9 @@ def export_command(args) -> int:
     elif args.dataset:
         from .data import load_dataset
 
-        summary = dataset_summary(load_dataset(args.dataset))
+        dataset = load_dataset(args.dataset)
+        use_model_units(dataset, source_model_units(args.run))
+        summary = dataset_summary(dataset)
     else:
         raise ValueError(f"{args.run} has no dataset.json: pass --dataset (the training dataset) for its scale")
     metrics = json.loads(Path(args.metrics).read_text()) if args.metrics else None
@@ -239,6 +245,7 @@ def export_command(args) -> int:
         from .evaluate import z_i_variance_calibration
 
         dataset = load_dataset(args.calibrate)
+        use_model_units(dataset, summary["scale"])
         held_out = dataset.indices("test")
         if not held_out:
             raise ValueError(f"{args.calibrate}: no held-out meshes to calibrate on (check splits.json)")
@@ -289,7 +296,9 @@ def main(argv=None) -> int:
     training.add_argument("dataset", help="dataset folder (meshes, optional ground_truth.jsonl and splits.json)")
     training.add_argument("--out", required=True, help="run folder (checkpoint, logs); rerun to resume")
     training.add_argument("--recipe", default="cpu", choices=["cpu", "gpu", "paper", "smoke"])
-    training.add_argument("--regime", default="gdvae++", choices=["gdvae++", "fo"])
+    training.add_argument("--regime", default="gdvae++", choices=["gdvae++", "fo", "paired"],
+                          help="the paper's GDVAE++ or GDVAE-FO, or the paired regime (FO + swap reconstruction "
+                               "and identity contrast from a `sim dataset --shared-poses` dataset)")
     training.add_argument("--ae", default="ftl", choices=["ftl", "std"], help="autoencoder architecture")
     training.add_argument("--unsupervised", action="store_true", help="no rotation supervision (unaligned data)")
     training.add_argument("--full-rotations", action="store_true", help="rotations over SO(3), not about the up axis")

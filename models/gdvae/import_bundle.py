@@ -164,6 +164,7 @@ def architecture(manifest: dict, rotation_head: str):
     chosen.vae = replace(chosen.vae, latent=sizes["x_c"], spectrum=sizes["spectrum"], n_extrinsic=sizes["z_E"],
                          n_rotation=sizes["z_R"])
     chosen.spectrum_count = sizes["spectrum"]
+    chosen.model_units = manifest["units"]["model_units_per_metre"]  # what its AE was trained in
     for field, key in (("ae_iterations", "ae_iterations"), ("vae_iterations", "vae_iterations"),
                        ("ae_batch", "ae_batch"), ("vae_batch", "vae_batch"), ("partial_views", "partial_views"),
                        ("bank_partial_views", "bank_partial_views"), ("depth_camera_views", "depth_camera_views")):

@@ -29,6 +29,7 @@ import torch
 from .ae import AEConfig, Autoencoder, ae_loss
 from .data import DepthCamera, MeshDataset, normalize, random_view_directions, sample_surface
 from .geometry import matrix_to_quaternion, quaternion_to_matrix, random_rotation_matrices, rotate
+from .paired import PairedBatches, Pairing
 from .vae import LatentVAE, VAEConfig, vae_loss
 
 log = logging.getLogger(__name__)
@@ -82,6 +83,10 @@ class Recipe:
     depth_camera_views: bool = False
     checkpoint_seconds: float = 120.0
     seed: int = 0
+    # Model units per input unit (metre). None: the training dataset's own scale (its largest
+    # bounding-box side becomes 1). Fixed once a model exists: a run that starts from another
+    # (`--init-from`, an imported bundle) keeps that model's units, whatever dataset it trains on.
+    model_units: float | None = None
 
 
     def bank_view_share(self) -> float:
@@ -93,7 +98,7 @@ class Recipe:
 def recipe(name: str, regime: str = "gdvae++", kind: str = "ftl") -> Recipe:
     """Named recipes. `paper`: the paper's sizes (N_p = 1600, its widths and iteration counts; a GPU
     job). `cpu`: scaled to train AE + VAE in about two hours on 2 cores. `smoke`: seconds, for tests."""
-    vae = VAEConfig() if regime == "gdvae++" else VAEConfig.flow_only()
+    vae = {"gdvae++": VAEConfig, "fo": VAEConfig.flow_only, "paired": VAEConfig.paired_regime}[regime]()
     if name == "paper":
         ae = AEConfig(kind=kind, latent=999 if kind == "ftl" else 600,
                       decoder_width=1250 if kind == "ftl" else 1200,
@@ -154,6 +159,27 @@ def load_run(run_dir: str | Path) -> tuple[Recipe, Autoencoder, LatentVAE | None
         vae.load_state_dict(vae_state)
         vae.eval()
     return chosen, ae, vae, state
+
+
+def source_model_units(run_dir: str | Path) -> float | None:
+    """The model units of an existing run: its recipe's `model_units`, else the scale of the dataset
+    it trained on (its dataset.json), else None (an unknown run)."""
+    run_dir = Path(run_dir)
+    recipe_file, summary_file = run_dir / "recipe.json", run_dir / "dataset.json"
+    units = json.loads(recipe_file.read_text()).get("model_units") if recipe_file.exists() else None
+    if units is None and summary_file.exists():
+        units = json.loads(summary_file.read_text()).get("scale")
+    return units
+
+
+def use_model_units(dataset: MeshDataset, units: float | None) -> None:
+    """Puts `dataset` in a model's units (None: keeps the dataset's own scale), saying so when they
+    differ: samples, spectra and the bundle's manifest all follow `dataset.scale`."""
+    if units is None or units == dataset.scale:
+        return
+    log.info("%s: in the model's units, %.6g per input unit (the dataset's own scale would be %.6g)",
+             dataset.root, units, dataset.scale)
+    dataset.scale = units
 
 
 def dataset_summary(dataset: MeshDataset) -> dict:
@@ -370,13 +396,19 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if stop_after == "ae":
         return {"ae": ae}
 
+    pairing = None
+    if chosen.vae.paired:
+        pairing = Pairing.from_truths([dataset.items[i].truth for i in train_indices], str(dataset.root))
     if state["stage"] == "bank":
-        bank = encode_bank(ae, sampler, spectra[train_indices], chosen, device)
+        bank = encode_bank(ae, sampler, spectra[train_indices], chosen, device, pairing)
         state = {"stage": "vae", "iteration": 0, "bank": bank}
         save(state)
     if stop_after == "bank":
         return {"ae": ae}
     bank = state["bank"]
+    if pairing is not None and "target" not in bank:
+        raise ValueError(f"{init_from}: its code bank has no paired targets (it was built for another regime): "
+                         "start from its AE with --rebuild-bank")
 
     vae = LatentVAE(replace(chosen.vae, latent=chosen.ae.latent, spectrum=spectra.shape[1]))
     if "vae" in state:
@@ -479,10 +511,13 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir, device, budget_s
 
 
 @torch.no_grad()
-def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, device=None) -> dict:
+def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, device=None,
+                pairing: Pairing | None = None) -> dict:
     """(q, x_c, lambda) for every training mesh under `bank_copies` random rotations; the
     rotation is the true one for a supervised AE with `bank_true_rotation`, else E_r's. A share
     `bank_partial_views` of the copies are camera-like views, with the whole mesh's spectrum.
+    With a `pairing` (the paired regime) the bank also holds each mesh's target code (x_c of its
+    whole surface in the canonical frame, the mean of `TARGET_SAMPLES` samples) and the pairing.
     Encoded on `device` (default: the AE's), kept on the CPU."""
     ae.eval()
     device = device or next(ae.parameters()).device
@@ -506,7 +541,31 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, 
         spectrum.append(torch.from_numpy(np.repeat(spectra[index][None], len(clouds), 0)).float())
     log.info("bank: %d training meshes x %d rotations encoded (%.0f%% partial views)", len(sampler.meshes),
              chosen.bank_copies, 100 * partial)
-    return {"q": torch.cat(qs), "x_c": torch.cat(codes), "spectrum": torch.cat(spectrum), "copies": chosen.bank_copies}
+    bank = {"q": torch.cat(qs), "x_c": torch.cat(codes), "spectrum": torch.cat(spectrum), "copies": chosen.bank_copies}
+    if pairing is not None:
+        identity = torch.eye(3, device=device).expand(TARGET_SAMPLES, 3, 3)
+        bank["target"] = torch.stack([
+            ae.encode_shape(sampler.clouds(index, TARGET_SAMPLES).to(device), identity)[0].mean(0).cpu()
+            for index in range(len(sampler.meshes))])
+        bank["pairing"] = pairing
+        log.info("bank: target codes of %d meshes for the paired terms", len(sampler.meshes))
+    return bank
+
+
+TARGET_SAMPLES = 4  # whole-surface samples averaged into a mesh's target code (paired regime)
+
+
+def paired_inputs(batches: PairedBatches, bank: dict, batch_size: int, device) -> tuple[torch.Tensor, dict]:
+    """A paired batch's bank entries and what `vae_loss` needs for the paired terms."""
+    drawn = batches.draw(batch_size)
+    meshes = drawn.entries // batches.copies
+    pairing = batches.pairing
+    extra = {
+        "targets": bank["target"][torch.from_numpy(drawn.swap_meshes).to(device)],
+        "subject": torch.from_numpy(pairing.subject[meshes]).to(device),
+        "family": torch.from_numpy(pairing.family[meshes]).to(device),
+    }
+    return torch.from_numpy(drawn.entries).to(device), extra
 
 
 def bank_batch(size: int, batch: int, copies: int, paired: bool, generator: torch.Generator) -> torch.Tensor:
@@ -535,9 +594,11 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
     device = device or torch.device("cpu")
     size = len(bank["q"])
     copies = bank.get("copies", chosen.bank_copies)  # banks saved before it was recorded
-    if vae.config.omega_view > 0 and size % copies:
+    if (vae.config.omega_view > 0 or vae.config.paired) and size % copies:
         raise ValueError(f"the code bank has {size} entries, not a multiple of its {copies} copies per mesh")
-    on_device = {key: bank[key].to(device) for key in ("q", "x_c", "spectrum")}
+    keys = ("q", "x_c", "spectrum", "target") if vae.config.paired else ("q", "x_c", "spectrum")
+    on_device = {key: bank[key].to(device) for key in keys}
+    triples = PairedBatches(bank["pairing"], copies, chosen.seed + 1 + state["iteration"]) if vae.config.paired else None
     vae.train()
     iteration, budget_ended = start, False
     for iteration in range(start, total):
@@ -546,11 +607,14 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
                      budget_seconds, iteration, total)
             budget_ended = True
             break
-        batch = bank_batch(size, chosen.vae_batch, copies, vae.config.omega_view > 0, generator).to(device)
+        if triples is not None:
+            batch, paired = paired_inputs(triples, on_device, chosen.vae_batch, device)
+        else:
+            batch, paired = bank_batch(size, chosen.vae_batch, copies, vae.config.omega_view > 0, generator).to(device), None
         warmup = vae.config.beta_warmup_iterations
         beta_scale = min(1.0, iteration / warmup) if warmup > 0 else 1.0
         losses = vae_loss(vae, on_device["q"][batch], on_device["x_c"][batch], on_device["spectrum"][batch],
-                          dataset_size=size, beta_scale=beta_scale)
+                          dataset_size=size, beta_scale=beta_scale, paired=paired)
         optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
         torch.nn.utils.clip_grad_norm_(vae.parameters(), 100.0)

@@ -252,6 +252,15 @@ def test_a_bundle_imports_back_into_a_run_that_computes_the_same_and_trains_on(t
     assert main(["train", str(tiny_dataset), "--out", str(again), "--recipe", "smoke", "--init-from", str(imported),
                  "--rebuild-bank"]) == 0
     assert load_run(again)[2] is not None
+    # In the imported model's units (the bundle's manifest), not the new dataset's own scale.
+    units = json.loads((bundle / "manifest.json").read_text())["units"]["model_units_per_metre"]
+    assert json.loads((imported / "recipe.json").read_text())["model_units"] == units
+    recipe_file = imported / "recipe.json"
+    recipe_file.write_text(json.dumps({**json.loads(recipe_file.read_text()), "model_units": 2 * units}))
+    scaled = tmp_path / "scaled"
+    assert main(["train", str(tiny_dataset), "--out", str(scaled), "--recipe", "smoke", "--init-from", str(imported),
+                 "--rebuild-bank", "--stop-after", "bank"]) == 0
+    assert json.loads((scaled / "dataset.json").read_text())["scale"] == pytest.approx(2 * units)
     # Continuing the AE: its batch norms normalise again (restored from sample clouds), the same
     # function in eval mode and about the same on a training batch.
     from gdvae.import_bundle import restore_batch_norms
@@ -349,3 +358,36 @@ def test_a_checkpoint_written_on_another_device_is_read_onto_the_cpu(tiny_datase
     monkeypatch.setattr(training.torch, "load", load)
     training.load_run(run)
     assert seen.get("map_location") == "cpu"
+
+
+def perturb_output(graph_path, output: str, offset: float) -> None:
+    """Adds `offset` to one node output of an ONNX graph, where every consumer reads it: what a
+    stage computing slightly (or very) differently would give."""
+    import onnx
+    from onnx import helper, numpy_helper
+
+    model = onnx.load(graph_path)
+    nodes = model.graph.node
+    producer = next(k for k, node in enumerate(nodes) if output in node.output)
+    nodes[producer].output[list(nodes[producer].output).index(output)] = f"{output}_unperturbed"
+    offset_name = f"{output}_offset"
+    model.graph.initializer.append(numpy_helper.from_array(np.array(offset, dtype=np.float32), offset_name))
+    nodes.insert(producer + 1, helper.make_node("Add", [f"{output}_unperturbed", offset_name], [output]))
+    onnx.save(model, graph_path)
+
+
+@pytest.mark.parametrize("output, offset, imports", [
+    ("q", 3e-5, True),  # upstream rounding: q a little off, and every stage downstream fed with it
+    ("q", 1e-3, False),  # the rotation stage computes something else
+    ("z_E_mean", 1e-3, False),  # a downstream stage computes something else
+])
+def test_import_tolerates_another_machines_rounding_but_not_a_different_graph(tiny_dataset, tmp_path, capsys,
+                                                                              output, offset, imports):
+    run, bundle = tmp_path / "run", tmp_path / "bundle"
+    assert main(["train", str(tiny_dataset), "--out", str(run), "--recipe", "smoke", "--ae", "std"]) == 0
+    assert main(["export", str(run), "--out", str(bundle)]) == 0
+    perturb_output(bundle / "encoder.onnx", output, offset)
+    code = main(["import-bundle", str(bundle), "--out", str(tmp_path / "imported")])
+    assert (code == 0) == imports, capsys.readouterr().err
+    if not imports:
+        assert "differs from the bundle's graphs" in capsys.readouterr().err
