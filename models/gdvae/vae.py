@@ -11,6 +11,8 @@ Two training regimes share architecture and inference, and differ only in the tr
   through mu~_I (so extrinsic information in mu_I cannot leak into the flow).
 - GDVAE-FO ("flow only"): reconstruct from (z_E, z_I) with z_I from x_c; the spectrum enters only
   through the consistency losses and the flow likelihood.
+A third regime, "paired" (not in the paper), is FO's pass plus two supervised terms from the sim's
+ground truth, swap reconstruction and identity contrast (paired.py), on batches of paired meshes.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from .flow import SpectralFlow
 from .geometry import normalize_quaternion, quaternion_distance
 from .hfvae import hfvae_terms
 from .nets import mlp
+from .paired import identity_contrast, swap_error
 from .spectrum import spectral_distance_torch
 
 
@@ -32,7 +35,7 @@ class VAEConfig:
     """Defaults: the paper's values for its mixed human-animal (HA) dataset, the closest to the
     sim's two families trained together (appendix Table "VAE hyper-parameters")."""
 
-    regime: str = "gdvae++"  # or "fo"
+    regime: str = "gdvae++"  # or "fo", or "paired" (FO's pass + the paired terms)
     latent: int = 999  # n = dim(x_c), from the AE
     spectrum: int = 22  # N_lambda (= n_I)
     n_rotation: int = 3
@@ -73,14 +76,33 @@ class VAEConfig:
     # views agree, about 1 when they are as far apart as two meshes), so z_I is pushed to name the
     # mesh, not the view. Batches are then drawn as pairs of views (`train_vae`). 0: off.
     omega_view: float = 0.0
+    # The paired regime's terms (paired.py; 0: off). Swap: the relative error of the two swapped
+    # decodings against the codes of the swapped meshes (as L_R's without 1/n). Contrast: InfoNCE
+    # on mu_I, positives the same subject in another pose and view, negatives the family's other
+    # subjects, at `contrast_temperature` times the batch's mean squared distance.
+    omega_swap: float = 0.0
+    omega_contrast: float = 0.0
+    contrast_temperature: float = 0.1
+
+    @property
+    def paired(self) -> bool:
+        """Whether training batches must be paired triples (paired.py)."""
+        return self.omega_swap > 0 or self.omega_contrast > 0
 
     @property
     def n_intrinsic(self) -> int:
         return self.spectrum
 
     def validate(self) -> None:
-        if self.regime not in ("gdvae++", "fo"):
-            raise ValueError(f"regime must be 'gdvae++' or 'fo', got {self.regime!r}")
+        if self.regime not in ("gdvae++", "fo", "paired"):
+            raise ValueError(f"regime must be 'gdvae++', 'fo' or 'paired', got {self.regime!r}")
+        for name in ("omega_swap", "omega_contrast"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0 (0: off), got {getattr(self, name)}")
+        if not self.contrast_temperature > 0:
+            raise ValueError(f"contrast_temperature must be > 0, got {self.contrast_temperature}")
+        if self.paired and self.regime == "gdvae++":
+            raise ValueError("the paired terms decode z_I of x_c: use them with the 'paired' (or 'fo') regime")
         if min(self.latent, self.spectrum, self.n_rotation, self.n_extrinsic) < 1:
             raise ValueError("latent sizes must be positive")
         if self.covariance_form not in ("covariance", "correlation", "off"):
@@ -92,6 +114,15 @@ class VAEConfig:
     def flow_only(cls, **overrides) -> "VAEConfig":
         """GDVAE-FO: the paper's FO weights for HA (omega_lambda = 800, omega_I = 0)."""
         return cls(**{"regime": "fo", "omega_spectrum": 800.0, "omega_intrinsic": 0.0, **overrides})
+
+    @classmethod
+    def paired_regime(cls, **overrides) -> "VAEConfig":
+        """FO's weights, L_R as the relative error (the swap's scale: z_E must be worth decoding),
+        squared cross-correlations for L_Sigma (scale-free, the screen's pick for a live z_E), and
+        the two paired terms. models/README.md, "The paired regime", says how these were chosen."""
+        return cls.flow_only(**{"regime": "paired", "reconstruction_per_dimension": False,
+                                "covariance_form": "correlation", "omega_swap": 360.0, "omega_contrast": 100.0,
+                                **overrides})
 
 
 def _w(size: int, scale: float) -> int:
@@ -223,10 +254,13 @@ def view_consistency(mu_i: torch.Tensor) -> torch.Tensor:
 
 
 def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: torch.Tensor,
-             dataset_size: int, with_jacobian: bool = True, beta_scale: float = 1.0) -> VAELosses:
+             dataset_size: int, with_jacobian: bool = True, beta_scale: float = 1.0,
+             paired: dict | None = None) -> VAELosses:
     """The full objective L_HF + L_lambda + L_F + L_D on a batch, in the configured regime.
     `beta_scale` multiplies the four HFVAE betas (the warm-up). With `omega_view` > 0 the batch
-    must be pairs of views (`view_consistency`)."""
+    must be pairs of views (`view_consistency`). With the paired terms on, the batch is paired
+    triples and `paired` holds the swaps' target codes and each row's subject and family
+    (train.py, `paired_inputs`)."""
     c = model.config
     (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = model.encode(q, x_c)
     flow_mean, log_det = model.flow(spectrum)
@@ -268,16 +302,27 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
     views = view_consistency(mu_i) if c.omega_view > 0 else mu_i.new_zeros(())
     consistency = consistency + c.omega_view * views
 
+    swap = contrast = mu_i.new_zeros(())
+    if c.paired:
+        if paired is None:
+            raise ValueError("the paired terms are on but the batch is not paired")
+        if c.omega_swap > 0:
+            swap = swap_error(model.decode_shape, z_e, z_i, paired["targets"], model.code_norm)
+        if c.omega_contrast > 0:
+            contrast = identity_contrast(mu_i, paired["subject"], paired["family"], c.contrast_temperature)
+    supervised = c.omega_swap * swap + c.omega_contrast * contrast
+
     covariance = disentanglement_penalty(c.covariance_form, [mu_r, mu_e, mean_i])
     # omega_J = 0 turns L_J off, and its cost (most of a step) with it.
     with_jacobian = with_jacobian and c.omega_jacobian != 0
     jacobian = jacobian_penalty(model, mu_e, mean_i) if with_jacobian else mu_e.new_zeros(())
     disentangle = c.omega_covariance * covariance + c.omega_jacobian * jacobian
 
-    total = hf + flow + consistency + disentangle
+    total = hf + flow + consistency + disentangle + supervised
     parts = {
         "total": total, "reconstruction": reconstruction, "quaternion": rotation,
         **terms, "log_p_lambda": log_likelihood, "intrinsic_consistency": intrinsic,
         "spectrum_error": spectrum_error, "variance_nll": variance, "view_consistency": views, "covariance": covariance, "jacobian": jacobian,
+        "swap": swap, "identity_contrast": contrast,
     }
     return VAELosses(total, {k: float(v.detach()) for k, v in parts.items()})

@@ -1,0 +1,165 @@
+"""The paired regime (paired.py): the pairing and its batches, the swap and contrast terms, and a
+smoke run through training, export and the node on a dataset with shared poses."""
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gdvae.cli import main
+from gdvae.paired import PairedBatches, Pairing, contrast_masks, identity_contrast, swap_error
+from gdvae.vae import LatentVAE, VAEConfig, vae_loss
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def grid_truths(families=("quadruped", "biped"), subjects=4, poses=5, drop=()):
+    """Ground-truth records of a subjects x poses grid per family (minus the `drop` files)."""
+    truths = []
+    for family in families:
+        for s in range(subjects):
+            for p in range(poses):
+                file = f"{family}-{s}-{p}"
+                if file not in drop:
+                    truths.append({"file": file, "family": family, "subject": f"{family}-{s:04d}",
+                                   "pose_id": f"{family}-pose-{p:03d}"})
+    return truths
+
+
+def test_paired_batches_are_triples_of_one_family_with_the_right_swap_meshes():
+    truths = grid_truths(drop={"biped-1-2", "quadruped-3-0"})
+    pairing = Pairing.from_truths(truths)
+    batches = PairedBatches(pairing, copies=3, seed=0)
+    for _ in range(20):
+        drawn = batches.draw(96)
+        r = drawn.rows
+        assert r == 32 and len(drawn.entries) == 3 * r and len(drawn.swap_meshes) == 2 * r
+        meshes = drawn.entries // 3
+        a, b, c = (truths_of(truths, meshes[k * r:(k + 1) * r]) for k in range(3))
+        ab, ba = truths_of(truths, drawn.swap_meshes[:r]), truths_of(truths, drawn.swap_meshes[r:])
+        for ta, tb, tc, tab, tba in zip(a, b, c, ab, ba):
+            assert ta["family"] == tb["family"] == tc["family"]
+            # B is another subject in another pose; C is A's subject in another pose.
+            assert tb["subject"] != ta["subject"] and tb["pose_id"] != ta["pose_id"]
+            assert tc["subject"] == ta["subject"] and tc["pose_id"] != ta["pose_id"]
+            # The swaps: B's subject in A's pose, A's subject in B's pose.
+            assert (tab["subject"], tab["pose_id"]) == (tb["subject"], ta["pose_id"])
+            assert (tba["subject"], tba["pose_id"]) == (ta["subject"], tb["pose_id"])
+    assert set(drawn.entries % 3) == {0, 1, 2}, "every copy (view) of a mesh is drawn"
+
+
+def truths_of(truths, meshes):
+    return [truths[m] for m in meshes]
+
+
+def test_a_dataset_without_shared_poses_cannot_be_paired():
+    truths = grid_truths()
+    del truths[3]["pose_id"]
+    with pytest.raises(ValueError, match="--shared-poses"):
+        Pairing.from_truths(truths, "some/dataset")
+    with pytest.raises(ValueError, match="nothing to pair"):
+        Pairing.from_truths(grid_truths(subjects=1))
+
+
+def test_the_swap_error_is_zero_for_a_decoder_that_swaps_exactly_and_positive_otherwise():
+    torch.manual_seed(0)
+    rows = 8
+    pose_a, pose_b, shape_a, shape_b = (torch.randn(rows, 3) for _ in range(4))
+    # A code is (pose, shape); an exact decoder concatenates (z_E, z_I).
+    z_e, z_i = torch.cat([pose_a, pose_b]), torch.cat([shape_a, shape_b])
+    targets = torch.cat([torch.cat([pose_a, shape_b], -1), torch.cat([pose_b, shape_a], -1)])
+    norm = torch.tensor(2.0)
+    exact = swap_error(lambda z: z, z_e, z_i, targets, norm)
+    assert exact.item() == 0.0
+    # A decoder that takes the pose from z_I's owner (no swap) or ignores z_E is wrong.
+    unswapped = torch.cat([torch.cat([pose_a, shape_a], -1), torch.cat([pose_b, shape_b], -1)])
+    assert swap_error(lambda z: unswapped, z_e, z_i, targets, norm).item() > 0.5
+    ignores_pose = swap_error(lambda z: torch.cat([torch.zeros(2 * rows, 3), z[:, 3:]], -1), z_e, z_i, targets, norm)
+    assert ignores_pose.item() == pytest.approx(float(torch.cat([pose_a, pose_b]).pow(2).sum(-1).mean() / 2))
+
+
+def test_the_contrast_never_pairs_two_subjects_as_positives_and_ignores_other_families():
+    subject = torch.tensor([0, 0, 1, 2, 2, 3])
+    family = torch.tensor([0, 0, 0, 0, 0, 1])
+    positive, negative = contrast_masks(subject, family)
+    for i in range(6):
+        for j in range(6):
+            assert bool(positive[i, j]) == (i != j and subject[i] == subject[j])
+            assert bool(negative[i, j]) == (subject[i] != subject[j] and family[i] == family[j])
+    assert not (positive & negative).any() and not positive.diagonal().any()
+    assert not positive[5].any() and not negative[5].any(), "a lone family's row has nothing to contrast"
+
+
+def test_the_contrast_is_low_when_subjects_cluster_high_when_they_do_not_and_scale_free():
+    torch.manual_seed(0)
+    subject = torch.arange(10).repeat_interleave(4)
+    family = torch.zeros(40, dtype=torch.long)
+    centres = 5 * torch.randn(10, 6)
+    clustered = centres[subject] + 0.1 * torch.randn(40, 6)
+    shuffled = torch.randn(40, 6)
+    low = identity_contrast(clustered, subject, family, 0.1).item()
+    high = identity_contrast(shuffled, subject, family, 0.1).item()
+    assert low < 0.05 and high > 1.5
+    assert identity_contrast(0.01 * clustered, subject, family, 0.1).item() == pytest.approx(low, rel=1e-3)
+
+
+def test_the_paired_terms_train_the_vae_and_are_refused_without_a_paired_batch():
+    torch.manual_seed(0)
+    base = dict(latent=24, spectrum=6, n_extrinsic=3, width_scale=0.02, flow_layers=3, flow_hidden=32)
+    model = LatentVAE(VAEConfig.paired_regime(**base))
+    rows = 6
+    q = torch.nn.functional.normalize(torch.randn(3 * rows, 4), dim=-1)
+    x_c, spectra = torch.randn(3 * rows, 24), torch.rand(3 * rows, 6).cumsum(-1) + 1
+    model.flow.input.fit(spectra)
+    paired = {"targets": torch.randn(2 * rows, 24), "subject": torch.cat([torch.arange(rows), rows + torch.arange(rows),
+                                                                          torch.arange(rows)]),
+              "family": torch.zeros(3 * rows, dtype=torch.long)}
+    losses = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False, paired=paired)
+    assert losses.parts["swap"] > 0 and losses.parts["identity_contrast"] > 0
+    losses.total.backward()
+    assert any(p.grad.abs().sum() > 0 for p in model.extrinsic.mean.parameters())
+    with pytest.raises(ValueError, match="not paired"):
+        vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False)
+    with pytest.raises(ValueError, match="paired"):
+        VAEConfig(omega_swap=1.0).validate()  # GDVAE++ reconstructs from z~_I, not from x_c
+
+
+@pytest.fixture(scope="module")
+def paired_dataset(tmp_path_factory):
+    """A tiny dataset written by the sim with shared poses (two families, 4 subjects x 3 poses)."""
+    sim = ROOT / "target" / "release" / "sim"
+    if not sim.exists():
+        pytest.skip("target/release/sim is not built (make binaries)")
+    out = tmp_path_factory.mktemp("paired")
+    subprocess.run([str(sim), "dataset", "--out", str(out), "--subjects", "4", "--poses", "3", "--shared-poses",
+                    "--split", "0.5,0,0.5", "--vertices", "800", "--seed", "3"], check=True, capture_output=True)
+    return out
+
+
+def test_a_paired_smoke_run_trains_exports_and_the_node_loads_it(paired_dataset, tmp_path):
+    run, bundle = tmp_path / "run", tmp_path / "bundle"
+    assert main(["train", str(paired_dataset), "--out", str(run), "--recipe", "smoke", "--regime", "paired",
+                 "--ae", "std", "--set", "recipe.vae_batch=24"]) == 0
+    lines = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    vae = [line for line in lines if line["stage"] == "vae"]
+    assert vae and vae[-1]["swap"] > 0 and vae[-1]["identity_contrast"] > 0
+    assert main(["export", str(run), "--out", str(bundle)]) == 0
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    assert manifest["model"]["regime"] == "paired"
+    node = ROOT / "target" / "release" / "gdvae-node"
+    if not node.exists():
+        pytest.skip("target/release/gdvae-node is not built (make binaries)")
+    # ONNX Runtime: the project's .venv beside the binary's ancestors (runtime.rs).
+    shown = subprocess.run([str(node), "inspect-model", str(bundle), "--load"], capture_output=True, text=True,
+                           timeout=120)
+    assert shown.returncode == 0, shown.stderr
+    assert "paired regime" in shown.stdout
+
+
+def test_the_paired_regime_refuses_a_dataset_without_shared_poses(tiny_dataset, tmp_path, capsys):
+    assert main(["train", str(tiny_dataset), "--out", str(tmp_path / "run"), "--recipe", "smoke",
+                 "--regime", "paired"]) != 0
+    assert "--shared-poses" in capsys.readouterr().err
