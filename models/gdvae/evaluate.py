@@ -107,6 +107,59 @@ def pose_transfer(ae, vae, dataset: MeshDataset, indices: list[int], codes: dict
     }
 
 
+def nearest_match_share(codes: np.ndarray, query_groups: np.ndarray, candidate: np.ndarray,
+                        answer: np.ndarray) -> float | None:
+    """For each row, its nearest other row (Euclidean) among those `candidate[i, j]` allows; the
+    share of rows whose nearest has the same `answer` label. None when no row has a candidate."""
+    distance = ((codes[:, None, :] - codes[None, :, :]) ** 2).sum(-1)
+    distance[~candidate] = np.inf
+    rows = np.flatnonzero(np.isfinite(distance).any(1))
+    if not len(rows):
+        return None
+    nearest = distance[rows].argmin(1)
+    return float((answer[rows] == answer[nearest]).mean())
+
+
+@torch.no_grad()
+def paired_retrieval(ae, vae, dataset: MeshDataset, indices: list[int], seed: int = 0,
+                     full_rotations: bool = False) -> dict:
+    """On a held-out grid of subjects x shared poses (`sim dataset --shared-poses`), each mesh seen
+    once as a whole surface and once by the depth camera (`DepthCamera`, what the node sees):
+    - pose by z_E: the share of meshes whose nearest z_E among other subjects of the family is in
+      the same pose (chance: 1 / poses), against the same with x_c;
+    - subject by z_I: the share whose nearest z_I among other poses of the family is the same
+      subject (chance: 1 / subjects), against the same with x_c.
+    Empty when the split has no shared poses."""
+    from .data import DepthCamera
+
+    truths = [dataset.items[i].truth or {} for i in indices]
+    if not all("pose_id" in t for t in truths):
+        return {}
+    family = np.array([t["family"] for t in truths])
+    subject = np.array([t["subject"] for t in truths])
+    pose = np.array([t["pose_id"] for t in truths])
+    same_family = family[:, None] == family[None, :]
+    other_subject = same_family & (subject[:, None] != subject[None, :])
+    other_pose = same_family & (pose[:, None] != pose[None, :])
+    chance = {"pose": float(np.mean([1 / len(set(pose[family == f])) for f in family])),
+              "subject": float(np.mean([1 / len(set(subject[family == f])) for f in family]))}
+    result: dict = {"meshes": len(indices), "chance": chance}
+    views = {"whole": PointSampler(dataset, indices, ae.config.points, seed),
+             "depth_camera": PointSampler(dataset, indices, ae.config.points, seed, DepthCamera())}
+    for name, sampler in views.items():
+        clouds = sampler.one_each() if name == "whole" else sampler.views(np.arange(len(indices)), 1, 1.0)
+        torch.manual_seed(seed)
+        codes = encode_all(ae, vae, clouds, random_rotation_matrices(len(clouds), full=full_rotations), None)
+        e, i, x = codes["mu_E"].numpy(), codes["mu_I"].numpy(), codes["x_c"].numpy()
+        result[name] = {
+            "pose_by_z_E": nearest_match_share(e, family, other_subject, pose),
+            "pose_by_x_c": nearest_match_share(x, family, other_subject, pose),
+            "subject_by_z_I": nearest_match_share(i, family, other_pose, subject),
+            "subject_by_x_c": nearest_match_share(x, family, other_pose, subject),
+        }
+    return result
+
+
 def beta_ranges(root) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Each family's beta range per parameter, from the dataset's `dataset.json` (the sim writes
     its families' BETA tables there); empty when the dataset has none."""
@@ -193,6 +246,7 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray | None, split: s
         metrics.update(retrieval_metrics(ae, vae, dataset, indices, codes, spectrum, rng, full_rotations))
         if sim_binary and made_by_sim(dataset):
             metrics["pose_transfer"] = pose_transfer(ae, vae, dataset, indices, codes, sim_binary, rng)
+        metrics["paired_retrieval"] = paired_retrieval(ae, vae, dataset, indices, seed, full_rotations)
         return metrics
     fresh = sampler.one_each()
 
@@ -214,6 +268,7 @@ def evaluate(ae, vae, dataset: MeshDataset, spectra: np.ndarray | None, split: s
 
     if vae is not None:
         metrics.update(vae_metrics(ae, vae, dataset, indices, clouds, fresh, spectra, rng, full_rotations, sim_binary))
+        metrics["paired_retrieval"] = paired_retrieval(ae, vae, dataset, indices, seed, full_rotations)
     if partial_views:
         metrics["partial_views"] = partial_view_metrics(ae, vae, dataset, indices, clouds, rng, seed, partial_views,
                                                         full_rotations)

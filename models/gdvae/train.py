@@ -562,6 +562,7 @@ def paired_inputs(batches: PairedBatches, bank: dict, batch_size: int, device) -
     pairing = batches.pairing
     extra = {
         "targets": bank["target"][torch.from_numpy(drawn.swap_meshes).to(device)],
+        "own_targets": bank["target"][torch.from_numpy(meshes).to(device)],
         "subject": torch.from_numpy(pairing.subject[meshes]).to(device),
         "family": torch.from_numpy(pairing.family[meshes]).to(device),
     }

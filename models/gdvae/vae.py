@@ -83,11 +83,15 @@ class VAEConfig:
     omega_swap: float = 0.0
     omega_contrast: float = 0.0
     contrast_temperature: float = 0.1
+    # Paired batches only: L_R's target is the mesh's whole-surface code (the bank's target), not
+    # the view's own code. The view's code also holds what the camera saw of the mesh; asked to
+    # reproduce it, the decoder makes z_E carry the view, since z_I is held to the subject.
+    reconstruct_canonical: bool = False
 
     @property
     def paired(self) -> bool:
         """Whether training batches must be paired triples (paired.py)."""
-        return self.omega_swap > 0 or self.omega_contrast > 0
+        return self.omega_swap > 0 or self.omega_contrast > 0 or self.reconstruct_canonical
 
     @property
     def n_intrinsic(self) -> int:
@@ -122,7 +126,7 @@ class VAEConfig:
         the two paired terms. models/README.md, "The paired regime", says how these were chosen."""
         return cls.flow_only(**{"regime": "paired", "reconstruction_per_dimension": False,
                                 "covariance_form": "correlation", "omega_swap": 360.0, "omega_contrast": 100.0,
-                                **overrides})
+                                "reconstruct_canonical": True, **overrides})
 
 
 def _w(size: int, scale: float) -> int:
@@ -262,6 +266,8 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
     triples and `paired` holds the swaps' target codes and each row's subject and family
     (train.py, `paired_inputs`)."""
     c = model.config
+    if c.paired and paired is None:
+        raise ValueError("the paired regime's terms are on but the batch is not paired (train.py, paired_inputs)")
     (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = model.encode(q, x_c)
     flow_mean, log_det = model.flow(spectrum)
     if c.regime == "gdvae++":
@@ -272,7 +278,8 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
     q_hat, x_hat = model.decode(z_r, z_e, z_i)
 
     dimensions = c.latent if c.reconstruction_per_dimension else 1
-    reconstruction = (x_c - x_hat).pow(2).sum(-1).mean() / (dimensions * model.code_norm)
+    target_code = paired["own_targets"] if c.reconstruct_canonical else x_c
+    reconstruction = (target_code - x_hat).pow(2).sum(-1).mean() / (dimensions * model.code_norm)
     rotation = quaternion_distance(q, q_hat).mean()
     terms = hfvae_terms(
         torch.cat([z_r, z_e, z_i], -1),
@@ -304,8 +311,6 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
 
     swap = contrast = mu_i.new_zeros(())
     if c.paired:
-        if paired is None:
-            raise ValueError("the paired terms are on but the batch is not paired")
         if c.omega_swap > 0:
             swap = swap_error(model.decode_shape, z_e, z_i, paired["targets"], model.code_norm)
         if c.omega_contrast > 0:

@@ -114,13 +114,27 @@ def test_the_paired_terms_train_the_vae_and_are_refused_without_a_paired_batch()
     q = torch.nn.functional.normalize(torch.randn(3 * rows, 4), dim=-1)
     x_c, spectra = torch.randn(3 * rows, 24), torch.rand(3 * rows, 6).cumsum(-1) + 1
     model.flow.input.fit(spectra)
-    paired = {"targets": torch.randn(2 * rows, 24), "subject": torch.cat([torch.arange(rows), rows + torch.arange(rows),
+    paired = {"targets": torch.randn(2 * rows, 24), "own_targets": torch.randn(3 * rows, 24), "subject": torch.cat([torch.arange(rows), rows + torch.arange(rows),
                                                                           torch.arange(rows)]),
               "family": torch.zeros(3 * rows, dtype=torch.long)}
     losses = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False, paired=paired)
     assert losses.parts["swap"] > 0 and losses.parts["identity_contrast"] > 0
     losses.total.backward()
     assert any(p.grad.abs().sum() > 0 for p in model.extrinsic.mean.parameters())
+    # L_R aims at the meshes' whole-surface codes (own_targets), not at the views' codes.
+    for own, compare in ((x_c, "equal"), (x_c + 3.0, "larger")):
+        torch.manual_seed(1)
+        parts = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False,
+                         paired={**paired, "own_targets": own}).parts
+        if compare == "equal":
+            near = parts["reconstruction"]
+        else:
+            assert parts["reconstruction"] > near + 1.0
+    model.config.reconstruct_canonical = False
+    torch.manual_seed(1)
+    assert vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False,
+                    paired={**paired, "own_targets": x_c + 3.0}).parts["reconstruction"] == pytest.approx(near)
+    model.config.reconstruct_canonical = True
     with pytest.raises(ValueError, match="not paired"):
         vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False)
     with pytest.raises(ValueError, match="paired"):
@@ -146,6 +160,13 @@ def test_a_paired_smoke_run_trains_exports_and_the_node_loads_it(paired_dataset,
     lines = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     vae = [line for line in lines if line["stage"] == "vae"]
     assert vae and vae[-1]["swap"] > 0 and vae[-1]["identity_contrast"] > 0
+    quick = tmp_path / "quick.json"
+    assert main(["evaluate", str(run), str(paired_dataset), "--retrieval-only", "--out", str(quick)]) == 0
+    paired = json.loads(quick.read_text())["paired_retrieval"]
+    assert paired["chance"] == {"pose": pytest.approx(1 / 3), "subject": pytest.approx(1 / 2)}
+    for view in ("whole", "depth_camera"):
+        assert set(paired[view]) == {"pose_by_z_E", "pose_by_x_c", "subject_by_z_I", "subject_by_x_c"}
+        assert all(0.0 <= value <= 1.0 for value in paired[view].values())
     assert main(["export", str(run), "--out", str(bundle)]) == 0
     manifest = json.loads((bundle / "manifest.json").read_text())
     assert manifest["model"]["regime"] == "paired"
@@ -163,3 +184,18 @@ def test_the_paired_regime_refuses_a_dataset_without_shared_poses(tiny_dataset, 
     assert main(["train", str(tiny_dataset), "--out", str(tmp_path / "run"), "--recipe", "smoke",
                  "--regime", "paired"]) != 0
     assert "--shared-poses" in capsys.readouterr().err
+
+
+def test_nearest_match_share_counts_rows_whose_allowed_nearest_shares_the_answer():
+    from gdvae.evaluate import nearest_match_share
+
+    codes = np.array([[0.0], [0.1], [5.0], [5.2], [9.0]])
+    answer = np.array(["p", "p", "q", "p", "r"])
+    allowed = np.ones((5, 5), dtype=bool)
+    np.fill_diagonal(allowed, False)
+    # Nearest: 0->1 (p=p), 1->0 (p=p), 2->3 (q!=p), 3->2 (p!=q), 4->3 (r!=p).
+    assert nearest_match_share(codes, answer, allowed, answer) == pytest.approx(2 / 5)
+    allowed[0, 1] = False  # row 0 may not use row 1: its nearest allowed is 2 (q)
+    allowed[4, :] = False  # row 4 has no candidate and is left out
+    assert nearest_match_share(codes, answer, allowed, answer) == pytest.approx(1 / 4)
+    assert nearest_match_share(codes, answer, np.zeros((5, 5), dtype=bool), answer) is None
