@@ -15,6 +15,7 @@ pub use crate::publish::{Format, PublishSettings, Ros2Settings};
 pub use crate::sources::zenoh::WireFormat;
 pub use crate::sources::{Input, SourceKind, SourceSettings};
 pub use crate::track::{ChangeDetector, HeadingMode, Smoothing, TrackSettings};
+pub use crate::zenoh_session::{NodeSettings, ZenohSettings};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
@@ -38,24 +39,6 @@ pub struct Config {
     pub zenoh: ZenohSettings,
     #[serde(rename = "source")]
     pub sources: Vec<SourceSettings>,
-}
-
-#[derive(Debug, Clone, Deserialize, Serialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct NodeSettings {
-    /// This node's name: the second part of every key expression.
-    pub name: String,
-    /// First part of every key expression.
-    pub prefix: String,
-}
-
-impl Default for NodeSettings {
-    fn default() -> Self {
-        Self {
-            name: "node".into(),
-            prefix: "gdvae".into(),
-        }
-    }
 }
 
 #[derive(Debug, Clone, Deserialize, Serialize)]
@@ -115,30 +98,6 @@ impl Default for PipelineSettings {
             prepare_workers: 2,
             summary_seconds: 5.0,
             feed_gap_s: 1.0,
-        }
-    }
-}
-
-#[derive(Debug, Clone, Deserialize, Serialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct ZenohSettings {
-    /// "peer" (an embedded peer, no router needed) or "client" (needs a router in `connect`).
-    pub mode: String,
-    /// Endpoints to listen on, e.g. "tcp/0.0.0.0:7447".
-    pub listen: Vec<String>,
-    /// Routers or peers to connect to, e.g. "tcp/192.168.1.10:7447".
-    pub connect: Vec<String>,
-    /// Find peers on the LAN by UDP multicast.
-    pub multicast_scouting: bool,
-}
-
-impl Default for ZenohSettings {
-    fn default() -> Self {
-        Self {
-            mode: "peer".into(),
-            listen: Vec::new(),
-            connect: Vec::new(),
-            multicast_scouting: true,
         }
     }
 }

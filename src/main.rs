@@ -14,7 +14,7 @@ use gdvae_node::config::{Config, Format};
 use gdvae_node::evaluate::EvaluateOptions;
 use gdvae_node::pipeline::{self, RunOptions, RunSummary};
 use gdvae_node::prepare::{Preparer, Sampling};
-use gdvae_node::publish::open_session;
+use gdvae_node::zenoh_session::open_session;
 use gdvae_node::runtime::{loaded_library, Encoder};
 use gdvae_node::sources::files::{read_cloud, FileOptions};
 use gdvae_node::stats::{cpu_steal_seconds, peak_memory_mib, Stats, STAGES};
@@ -704,7 +704,7 @@ fn run_pipeline(config: &Config, options: RunOptions, live_summary: bool) -> Res
     let bundle = Bundle::load(&config.model.bundle)?;
     let session =
         if config.publish.zenoh || config.publish.ros2.enabled || config.sources.iter().any(|s| s.is_subscription()) {
-            let session = open_session(config)?;
+            let session = open_session(&config.zenoh)?;
             log::info!(
                 "zenoh {} session {} up; publishing on {}",
                 config.zenoh.mode,

@@ -12,6 +12,7 @@ use ort::session::Session;
 use ort::value::Tensor;
 
 use crate::bundle::Bundle;
+pub use crate::encoding::Encoding;
 
 #[derive(Debug, thiserror::Error)]
 pub enum RuntimeError {
@@ -107,37 +108,6 @@ pub fn environment(configured: Option<&Path>) -> Result<&'static ort::environmen
 /// The library actually loaded, once `environment` succeeded.
 pub fn loaded_library() -> Option<PathBuf> {
     ENVIRONMENT.get().and_then(|o| o.as_ref().ok()).map(|(p, _)| p.clone())
-}
-
-/// The encoder's outputs for one frame.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct Encoding {
-    pub q: [f32; 4],
-    pub x_c: Vec<f32>,
-    pub z_r_mean: Vec<f32>,
-    pub z_r_logvar: Vec<f32>,
-    pub z_e_mean: Vec<f32>,
-    pub z_e_logvar: Vec<f32>,
-    pub z_i_mean: Vec<f32>,
-    pub z_i_logvar: Vec<f32>,
-}
-
-impl Encoding {
-    /// Every output value is finite (a NaN would poison the tracker's running estimates).
-    pub fn is_finite(&self) -> bool {
-        self.q.iter().all(|v| v.is_finite())
-            && [
-                &self.x_c,
-                &self.z_r_mean,
-                &self.z_r_logvar,
-                &self.z_e_mean,
-                &self.z_e_logvar,
-                &self.z_i_mean,
-                &self.z_i_logvar,
-            ]
-            .iter()
-            .all(|values| values.iter().all(|v| v.is_finite()))
-    }
 }
 
 const OUTPUTS: [&str; 8] = [

@@ -12,7 +12,7 @@
 //! z_I; mean of the variances, since the copies share one observation and are not independent
 //! measurements). `z_R`, which describes the rotation as seen, is the unturned copy's.
 
-use crate::runtime::Encoding;
+use crate::encoding::Encoding;
 use crate::track::pose::{normalized as unit, turn_rotation};
 
 /// Copies further than this from the medoid's rotation are outvoted.

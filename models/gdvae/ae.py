@@ -215,3 +215,34 @@ def ae_loss(model: Autoencoder, canonical_points: torch.Tensor, generator=None,
     parts["total"] = float(total.detach())
     output = AEOutput(q=q, rotation=used, x_c=x_c, canonical=canonical, reconstruction=rotate(canonical, used))
     return AELosses(total, parts), output
+
+
+def restore_batch_norms(ae: Autoencoder, clouds: torch.Tensor) -> None:
+    """Each PointNet batch norm set to its input's mean and spread over `clouds` [B, N, 3] (inputs
+    like the training ones), so that training mode normalises as before the export's folding (an
+    autoencoder imported from a bundle, `import_bundle.py`, has them as identities)."""
+    norms = [m for m in ae.modules() if isinstance(m, torch.nn.BatchNorm1d)]
+    seen: dict[torch.nn.Module, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def record(module, inputs, _output):
+        x = inputs[0].transpose(0, 1).reshape(inputs[0].shape[1], -1)  # [C, B * N]
+        seen[module] = (x.mean(1), x.var(1, unbiased=False))
+
+    hooks = [m.register_forward_hook(record) for m in norms]
+    was_training = ae.training
+    ae.eval()
+    try:
+        turned = rotate(clouds, random_rotation_matrices(len(clouds), None, ae.config.full_rotations, clouds.device))
+        ae.encode_rotation(turned)
+        ae.shape_encoder(turned)
+    finally:
+        for hook in hooks:
+            hook.remove()
+        ae.train(was_training)
+    for module in norms:
+        mean, variance = seen[module]
+        variance = variance.clamp_min(2 * module.eps)
+        module.weight.copy_(variance.sqrt())
+        module.bias.copy_(mean)
+        module.running_mean.copy_(mean)
+        module.running_var.copy_(variance - module.eps)

@@ -11,7 +11,7 @@ export's parity check before anything is written.
 
 Training on from there (`--continue-ae`) needs batch norms that normalise again: in training mode a
 batch norm divides by its batch's statistics, so an identity one would change the function at the
-first step. `restore_batch_norms` sets each to the statistics of its input over sample clouds
+first step. `ae.restore_batch_norms` sets each to the statistics of its input over sample clouds
 (weight = std, bias = running mean = mean, running variance = std^2 - eps): still exactly the
 identity in eval mode, and about the identity on a training batch.
 
@@ -122,38 +122,6 @@ def state_from_bundle(bundle: Path, ae: Autoencoder, vae: LatentVAE) -> tuple[di
 
 
 @torch.no_grad()
-def restore_batch_norms(ae: Autoencoder, clouds: torch.Tensor) -> None:
-    """Each PointNet batch norm set to its input's mean and spread over `clouds` [B, N, 3] (inputs
-    like the training ones), so that training mode normalises as before the export's folding."""
-    from .geometry import random_rotation_matrices, rotate
-
-    norms = [m for m in ae.modules() if isinstance(m, torch.nn.BatchNorm1d)]
-    seen: dict[torch.nn.Module, tuple[torch.Tensor, torch.Tensor]] = {}
-
-    def record(module, inputs, _output):
-        x = inputs[0].transpose(0, 1).reshape(inputs[0].shape[1], -1)  # [C, B * N]
-        seen[module] = (x.mean(1), x.var(1, unbiased=False))
-
-    hooks = [m.register_forward_hook(record) for m in norms]
-    was_training = ae.training
-    ae.eval()
-    try:
-        turned = rotate(clouds, random_rotation_matrices(len(clouds), None, ae.config.full_rotations, clouds.device))
-        ae.encode_rotation(turned)
-        ae.shape_encoder(turned)
-    finally:
-        for hook in hooks:
-            hook.remove()
-        ae.train(was_training)
-    for module in norms:
-        mean, variance = seen[module]
-        variance = variance.clamp_min(2 * module.eps)
-        module.weight.copy_(variance.sqrt())
-        module.bias.copy_(mean)
-        module.running_mean.copy_(mean)
-        module.running_var.copy_(variance - module.eps)
-
-
 def architecture(manifest: dict, rotation_head: str):
     """The recipe a manifest names, with its sizes."""
     model, sizes, training = manifest["model"], manifest["sizes"], manifest.get("training", {})

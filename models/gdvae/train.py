@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .ae import AEConfig, Autoencoder, ae_loss
+from .ae import AEConfig, Autoencoder, ae_loss, restore_batch_norms
 from .data import DepthCamera, MeshDataset, normalize, random_view_directions, sample_surface
 from .geometry import matrix_to_quaternion, quaternion_to_matrix, random_rotation_matrices, rotate
 from .paired import PairedBatches, Pairing
@@ -377,8 +377,6 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     sampler = PointSampler(dataset, train_indices, chosen.ae.points, chosen.seed + state["iteration"],
                            DepthCamera() if chosen.depth_camera_views else None)
     if imported and state["stage"] == "ae":
-        from .import_bundle import restore_batch_norms
-
         chosen_meshes, _ = sampler.batch(64)
         restore_batch_norms(ae, sampler.views(chosen_meshes, 3, chosen.partial_views))
         log.info("batch norms of the imported AE set to the statistics of %d training clouds", 3 * 64)

@@ -263,7 +263,7 @@ def test_a_bundle_imports_back_into_a_run_that_computes_the_same_and_trains_on(t
     assert json.loads((scaled / "dataset.json").read_text())["scale"] == pytest.approx(2 * units)
     # Continuing the AE: its batch norms normalise again (restored from sample clouds), the same
     # function in eval mode and about the same on a training batch.
-    from gdvae.import_bundle import restore_batch_norms
+    from gdvae.ae import restore_batch_norms
 
     clouds = torch.rand(16, 200, 3) - 0.5
     with torch.no_grad():

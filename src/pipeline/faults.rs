@@ -1,5 +1,5 @@
 //! Faults inside the node: a panic while one frame is processed becomes that frame's counted
-//! rejection (`contained`); a stage thread that dies anyway stops the run (`StageGuard`), and the
+//! rejection (`crate::contain`); a stage thread that dies anyway stops the run (`StageGuard`), and the
 //! status reply's queue observers (`Queues`) let go of their channels so nothing waits for ever.
 
 use std::collections::BTreeMap;
@@ -31,25 +31,6 @@ impl Queues {
     pub(super) fn release(&self) {
         self.channels.lock().unwrap_or_else(|e| e.into_inner()).clear();
     }
-}
-
-/// The message of a caught panic.
-pub(super) fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
-    payload
-        .downcast_ref::<&str>()
-        .map(|s| s.to_string())
-        .or_else(|| payload.downcast_ref::<String>().cloned())
-        .unwrap_or_else(|| "unknown panic".into())
-}
-
-/// Runs one frame's work; a panic in it becomes an error naming the stage (the stage goes on
-/// with the next frame, and the frame is a counted rejection).
-pub(crate) fn contained<T>(stage: &str, work: impl FnOnce() -> T) -> Result<T, String> {
-    std::panic::catch_unwind(std::panic::AssertUnwindSafe(work)).map_err(|payload| {
-        let message = format!("internal error in {stage}: {}", panic_message(payload.as_ref()));
-        log::error!("{message}");
-        message
-    })
 }
 
 /// Held by every stage thread: if the thread dies by a panic that per-frame containment did not
@@ -84,15 +65,6 @@ mod tests {
     use super::*;
     use crossbeam_channel::bounded;
     use std::time::Duration;
-
-    #[test]
-    fn a_panic_in_a_frame_is_an_error_naming_the_stage() {
-        assert_eq!(contained("prepare", || 7), Ok(7));
-        let error = contained("prepare", || -> u32 { panic!("index out of bounds") }).unwrap_err();
-        assert_eq!(error, "internal error in prepare: index out of bounds");
-        let error = contained("encode", || -> u32 { panic!("{} points", 3) }).unwrap_err();
-        assert_eq!(error, "internal error in encode: 3 points");
-    }
 
     #[test]
     fn a_dying_stage_stops_the_run_and_releases_the_observed_channels() {

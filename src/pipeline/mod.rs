@@ -22,8 +22,6 @@ mod stages;
 mod status;
 mod work;
 
-pub(crate) use faults::contained;
-
 use faults::{depth_of, Queues, StageGuard};
 use stages::{batcher, encode, ingest, prepare, track};
 use status::{status_queryable, summary_logger};
@@ -146,7 +144,7 @@ pub fn run(
             bundle.manifest.sizes.points,
             bundle.manifest.units.model_units_per_metre as f32,
         )
-        .with_sources(&config.sources),
+        .with_sensor_poses(config.sources.iter().map(crate::sources::SourceSettings::sensor_pose)),
     );
 
     // Sources, subscriptions first: if one fails, no source thread has started yet.
@@ -266,7 +264,9 @@ pub fn run(
         )?);
     }
     let mut publisher = Publisher::new(
-        config,
+        &config.publish,
+        &config.node,
+        config.model.onnxruntime.as_deref(),
         bundle,
         session.clone(),
         participants.as_ref(),
@@ -294,7 +294,11 @@ pub fn run(
 
     // Publish on this thread. Zenoh subscriptions end when stop is set.
     let mut subscribers = Some(subscribers);
-    let mut connection = crate::publish::ConnectionWatch::new(config, session.as_ref());
+    let mut connection = crate::zenoh_session::ConnectionWatch::new(
+        config.publish.zenoh || config.publish.ros2.enabled,
+        &config.zenoh,
+        session.as_ref(),
+    );
     loop {
         match publish_rx.recv_timeout(Duration::from_millis(50)) {
             Ok((mut output, tracked_at, ingested)) => {

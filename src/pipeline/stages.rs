@@ -7,9 +7,9 @@ use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, Select, Sender};
 
-use super::faults::contained;
 use super::work::*;
 use crate::config::Config;
+use crate::contain::contained;
 use crate::prepare::Preparer;
 use crate::runtime::Encoder;
 use crate::sources::Ingest;

@@ -4,8 +4,8 @@
 
 use std::time::Instant;
 
+use crate::encoding::Encoding;
 use crate::prepare::Prepared;
-use crate::runtime::Encoding;
 use crate::sources::Rejection;
 
 /// Metadata that travels with a frame from ingest to publish.

@@ -22,7 +22,14 @@ use std::collections::HashMap;
 use nalgebra::{Matrix3, Vector3};
 
 use crate::cloud::Frame;
-use crate::sources::SourceSettings;
+
+/// One stream's sensor pose as its source sets it: either part may be left to `[prepare]`'s.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SensorPose {
+    pub stream: String,
+    pub rotation: Option<[[f32; 3]; 3]>,
+    pub translation: Option<[f32; 3]>,
+}
 
 /// A frame ready for the encoder.
 #[derive(Debug, Clone)]
@@ -66,18 +73,16 @@ impl Preparer {
         }
     }
 
-    /// The sources' own sensor poses, where they set one (each part falls back to `[prepare]`'s).
-    pub fn with_sources(mut self, sources: &[SourceSettings]) -> Self {
-        for source in sources {
-            if source.sensor_to_gravity_rotation.is_some() || source.sensor_to_gravity_translation.is_some() {
-                let rotation = source
-                    .sensor_to_gravity_rotation
-                    .unwrap_or(self.settings.sensor_to_gravity_rotation);
+    /// The streams' own sensor poses, where their sources set one (each part falls back to
+    /// `[prepare]`'s).
+    pub fn with_sensor_poses(mut self, poses: impl IntoIterator<Item = SensorPose>) -> Self {
+        for source in poses {
+            if source.rotation.is_some() || source.translation.is_some() {
+                let rotation = source.rotation.unwrap_or(self.settings.sensor_to_gravity_rotation);
                 let translation = source
-                    .sensor_to_gravity_translation
+                    .translation
                     .unwrap_or(self.settings.sensor_to_gravity_translation);
-                self.per_stream
-                    .insert(source.stream.clone(), pose(&rotation, &translation));
+                self.per_stream.insert(source.stream, pose(&rotation, &translation));
             }
         }
         self

@@ -12,13 +12,13 @@ mod jsonl;
 pub mod ros2;
 mod zenoh_sink;
 
-use zenoh::{Session, Wait};
+use zenoh::Session;
 
 use serde::{Deserialize, Serialize};
 
 use crate::bundle::Bundle;
-use crate::config::Config;
 use crate::state::Output;
+use crate::zenoh_session::NodeSettings;
 
 pub use ros2::Ros2Settings;
 
@@ -96,29 +96,43 @@ pub struct Publisher {
 }
 
 impl Publisher {
-    /// The sinks `[publish]` configures. `lossless`: block on congestion (replay) instead of
-    /// dropping (live). `session`: the node's zenoh session, when one is open; `participants`: the
-    /// node in ROS 2 domains (on that session).
+    /// The sinks `settings` (`[publish]`) configures, on the keys `node` names. `lossless`: block
+    /// on congestion (replay) instead of dropping (live). `session`: the node's zenoh session, when
+    /// one is open; `participants`: the node in ROS 2 domains (on that session); `onnxruntime`: the
+    /// library the ROS 2 sink's shape decoder loads (`[model] onnxruntime`).
     pub fn new(
-        config: &Config,
+        settings: &PublishSettings,
+        node: &NodeSettings,
+        onnxruntime: Option<&std::path::Path>,
         bundle: &Bundle,
         session: Option<Session>,
         participants: Option<&crate::ros2::Participants>,
         lossless: bool,
     ) -> Result<Self, PublishError> {
         let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
-        if let Some(path) = config.publish.jsonl.as_deref() {
+        if let Some(path) = settings.jsonl.as_deref() {
             sinks.push(Box::new(jsonl::JsonLines::create(path)?));
         }
-        if config.publish.zenoh {
+        if settings.zenoh {
             let session = session
                 .clone()
                 .ok_or_else(|| PublishError::Zenoh("no session".into()))?;
-            sinks.push(Box::new(zenoh_sink::ZenohSink::new(config, session, lossless)));
+            sinks.push(Box::new(zenoh_sink::ZenohSink::new(
+                node,
+                settings.format,
+                session,
+                lossless,
+            )));
         }
-        if config.publish.ros2.enabled {
+        if settings.ros2.enabled {
             let participants = participants.ok_or_else(|| PublishError::Ros2("no zenoh session".into()))?;
-            sinks.push(Box::new(ros2::Ros2Sink::new(config, bundle, participants, lossless)?));
+            sinks.push(Box::new(ros2::Ros2Sink::new(
+                &settings.ros2,
+                onnxruntime,
+                bundle,
+                participants,
+                lossless,
+            )?));
         }
         Ok(Self { sinks })
     }
@@ -164,81 +178,5 @@ pub fn encode<T: serde::Serialize>(format: Format, message: &T) -> Result<Vec<u8
             ciborium::into_writer(message, &mut bytes).map_err(|e| PublishError::Encode(e.to_string()))?;
             Ok(bytes)
         }
-    }
-}
-
-/// A zenoh session as configured: an embedded peer by default, or a client of routers.
-pub fn open_session(config: &Config) -> Result<Session, PublishError> {
-    let z = &config.zenoh;
-    let mut zc = zenoh::Config::default();
-    let json = |v: &Vec<String>| serde_json::to_string(v).expect("strings serialize");
-    let set = |zc: &mut zenoh::Config, key: &str, value: &str| {
-        zc.insert_json5(key, value)
-            .map_err(|e| PublishError::Zenoh(format!("zenoh setting {key} = {value}: {e}")))
-    };
-    set(&mut zc, "mode", &format!("\"{}\"", z.mode))?;
-    if !z.listen.is_empty() {
-        set(&mut zc, "listen/endpoints", &json(&z.listen))?;
-    }
-    if !z.connect.is_empty() {
-        set(&mut zc, "connect/endpoints", &json(&z.connect))?;
-    }
-    set(
-        &mut zc,
-        "scouting/multicast/enabled",
-        if z.multicast_scouting { "true" } else { "false" },
-    )?;
-    zenoh::open(zc)
-        .wait()
-        .map_err(|e| PublishError::Zenoh(format!("opening a session: {e}")))
-}
-
-/// Watches whether the node is connected to anything it was told to connect to (`[zenoh]
-/// connect`): a router outage is otherwise invisible, as zenoh accepts puts with nobody to send
-/// them to. Checked at most twice a second; each change is logged once.
-pub struct ConnectionWatch {
-    session: Session,
-    connected: bool,
-    checked: std::time::Instant,
-    lost_at: Option<std::time::Instant>,
-}
-
-impl ConnectionWatch {
-    /// A watch when zenoh publishes and `connect` names endpoints; None otherwise (an embedded
-    /// peer with nobody configured to connect to has no outage to report).
-    pub fn new(config: &Config, session: Option<&Session>) -> Option<Self> {
-        let publishes = config.publish.zenoh || config.publish.ros2.enabled;
-        let session = session.filter(|_| publishes && !config.zenoh.connect.is_empty())?;
-        let mut watch = Self {
-            session: session.clone(),
-            connected: true,
-            checked: std::time::Instant::now() - std::time::Duration::from_secs(1),
-            lost_at: None,
-        };
-        watch.connected();
-        Some(watch)
-    }
-
-    /// Whether a router or peer is connected now (cached for 500 ms).
-    pub fn connected(&mut self) -> bool {
-        if self.checked.elapsed() < std::time::Duration::from_millis(500) {
-            return self.connected;
-        }
-        self.checked = std::time::Instant::now();
-        let info = self.session.info();
-        let now = info.routers_zid().wait().next().is_some() || info.peers_zid().wait().next().is_some();
-        match (self.connected, now) {
-            (true, false) => {
-                log::warn!("zenoh: no router or peer connected; states published now reach nobody there");
-                self.lost_at = Some(std::time::Instant::now());
-            }
-            (false, true) => log::info!(
-                "zenoh: connected again after {:.1} s; publishing reaches subscribers",
-                self.lost_at.map(|t| t.elapsed().as_secs_f64()).unwrap_or(0.0)
-            ),
-            _ => {}
-        }
-        self.connected = now;
-        now
     }
 }

@@ -8,9 +8,10 @@ use zenoh::bytes::Encoding;
 use zenoh::qos::CongestionControl;
 use zenoh::{Session, Wait};
 
+use super::Format;
 use super::{encode, PublishError, Sink};
-use crate::config::{Config, Format};
 use crate::state::Output;
+use crate::zenoh_session::NodeSettings;
 
 pub struct ZenohSink {
     prefix: String,
@@ -22,10 +23,10 @@ pub struct ZenohSink {
 
 impl ZenohSink {
     /// `lossless`: block on congestion (replay) instead of dropping (live).
-    pub fn new(config: &Config, session: Session, lossless: bool) -> Self {
+    pub fn new(node: &NodeSettings, format: Format, session: Session, lossless: bool) -> Self {
         Self {
-            prefix: format!("{}/{}", config.node.prefix, config.node.name),
-            format: config.publish.format,
+            prefix: format!("{}/{}", node.prefix, node.name),
+            format,
             session,
             congestion: if lossless {
                 CongestionControl::Block

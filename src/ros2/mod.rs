@@ -5,6 +5,7 @@
 
 pub mod graph;
 pub mod msg;
+mod settings;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU32, Ordering};
@@ -12,8 +13,8 @@ use std::sync::{Arc, Mutex};
 
 use zenoh::{Session, Wait};
 
-use crate::publish::Ros2Settings;
 use graph::GraphNode;
+pub use settings::Ros2Settings;
 
 /// The node in one ROS 2 domain: its liveliness token (`ros2 node list`) and the ids of its
 /// entities, handed out as rmw_zenoh does (the node first, then each publisher and subscription).

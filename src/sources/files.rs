@@ -12,6 +12,7 @@ use std::path::Path;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use super::outlet::{Intake, Outlet};
 use crate::cloud::PointCloud;
 
 #[derive(Debug, thiserror::Error)]
@@ -457,7 +458,7 @@ fn sample_surface(
 
 /// The files a files source reads: the file itself, or the readable files of a folder by name.
 pub fn list_files(path: &Path) -> Result<Vec<std::path::PathBuf>, FileError> {
-    let files = super::file_or_folder(path, &EXTENSIONS).map_err(|source| FileError::Io {
+    let files = file_or_folder(path, &EXTENSIONS).map_err(|source| FileError::Io {
         path: path.display().to_string(),
         source,
     })?;
@@ -502,17 +503,13 @@ impl FilesSettings {
 
 /// Runs a files source: every file once (or repeatedly with `repeat`), paced at `rate_hz`
 /// (0: as fast as the pipeline takes them). A file that cannot be read is a rejection.
-pub fn run(
-    source: &crate::config::SourceSettings,
-    settings: &FilesSettings,
-    mut outlet: super::Outlet,
-) -> Result<(), FileError> {
+pub fn run(intake: &Intake, settings: &FilesSettings, mut outlet: Outlet) -> Result<(), FileError> {
     let files = list_files(&settings.path)?;
     let options = FileOptions {
-        max_points: source.max_points,
+        max_points: intake.max_points,
         ..FileOptions::default()
     };
-    let unit = source.unit.unwrap_or(crate::cloud::Unit::Metre);
+    let unit = intake.unit.unwrap_or(crate::cloud::Unit::Metre);
     let period = (settings.rate_hz > 0.0).then(|| std::time::Duration::from_secs_f64(1.0 / settings.rate_hz));
     let started = std::time::Instant::now();
     let mut sent = 0u32;
@@ -539,4 +536,24 @@ pub fn run(
             return Ok(());
         }
     }
+}
+
+/// The path itself when it is a file (which must exist), or the files of a folder whose extension
+/// (case-insensitive) is one of `extensions`, sorted by name; possibly none.
+pub fn file_or_folder(path: &std::path::Path, extensions: &[&str]) -> std::io::Result<Vec<std::path::PathBuf>> {
+    if !path.is_dir() {
+        std::fs::metadata(path)?;
+        return Ok(vec![path.to_path_buf()]);
+    }
+    let mut files: Vec<_> = std::fs::read_dir(path)?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            p.extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| extensions.contains(&e.to_ascii_lowercase().as_str()))
+        })
+        .collect();
+    files.sort();
+    Ok(files)
 }

@@ -14,11 +14,10 @@ use zenoh::sample::{Sample, SampleKind};
 use zenoh::Wait;
 
 use crate::cloud::{PointCloud, Unit};
-use crate::config::SourceSettings;
 use crate::ros2::graph::{self, EntityKind, Qos};
 use crate::ros2::{msg, Participant};
+use crate::sources::outlet::{Intake, Outlet};
 use crate::sources::ros2::{decode_camera_info, decode_depth_image, decode_point_cloud2, CameraIntrinsics};
-use crate::sources::Outlet;
 
 /// `kind = "ros2"`: a ROS 2 topic.
 #[derive(Debug, Clone, serde::Deserialize, serde::Serialize)]
@@ -86,7 +85,7 @@ pub fn topics(participant: &Participant, settings: &Ros2TopicSettings) -> (Strin
 
 pub fn subscribe(
     participant: Arc<Participant>,
-    source: &SourceSettings,
+    intake: &Intake,
     settings: &Ros2TopicSettings,
     outlet: Outlet,
 ) -> Result<Ros2Subscription, zenoh::Error> {
@@ -114,9 +113,9 @@ pub fn subscribe(
 
     let data = {
         let (max_points, depth_step, unit) = (
-            source.max_points,
+            intake.max_points,
             settings.depth_step,
-            source.unit.unwrap_or(Unit::Metre),
+            intake.unit.unwrap_or(Unit::Metre),
         );
         let outlet = Mutex::new(outlet);
         let topic = topic.clone();

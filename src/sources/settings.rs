@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use serde::{Deserialize, Serialize};
 
 use crate::cloud::Unit;
-use crate::prepare::check_rotation;
+use crate::prepare::{check_rotation, SensorPose};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
@@ -134,6 +134,23 @@ impl SourceSettings {
             max_points: default_max_points(),
             sensor_to_gravity_rotation: None,
             sensor_to_gravity_translation: None,
+        }
+    }
+
+    /// The limits its source applies to every frame.
+    pub fn intake(&self) -> super::outlet::Intake {
+        super::outlet::Intake {
+            max_points: self.max_points,
+            unit: self.unit,
+        }
+    }
+
+    /// The sensor pose this source sets for its stream, for prepare.
+    pub fn sensor_pose(&self) -> SensorPose {
+        SensorPose {
+            stream: self.stream.clone(),
+            rotation: self.sensor_to_gravity_rotation,
+            translation: self.sensor_to_gravity_translation,
         }
     }
 

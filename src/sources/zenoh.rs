@@ -13,9 +13,8 @@ use zenoh::{Session, Wait};
 use crate::cloud::{PointCloud, Unit};
 use serde::{Deserialize, Serialize};
 
-use crate::config::SourceSettings;
+use crate::sources::outlet::{Intake, Outlet};
 use crate::sources::ros2::decode_point_cloud2;
-use crate::sources::Outlet;
 
 /// The DepthAI harness's encoding schema (see sim/depthai_feed.py).
 pub const DEPTHAI_SCHEMA: &str = "depthai/PointCloudData;xyz_f32_mm";
@@ -59,14 +58,14 @@ impl ZenohSourceSettings {
 /// Subscribes `outlet` to the source's key. The subscription lives as long as the returned value.
 pub fn subscribe(
     session: &Session,
-    source: &SourceSettings,
+    intake: &Intake,
     settings: &ZenohSourceSettings,
     outlet: Outlet,
 ) -> Result<zenoh::pubsub::Subscriber<()>, zenoh::Error> {
     let key = settings.key.clone();
     let format = settings.format;
-    let max_points = source.max_points;
-    let unit_override = source.unit;
+    let max_points = intake.max_points;
+    let unit_override = intake.unit;
     let outlet = Mutex::new(outlet);
     session
         .declare_subscriber(key)

@@ -2,7 +2,7 @@
 //! what the stream's filters make of it (`filtered`, `shape`).
 
 use super::{confidence_from_log_variance, StreamTracker};
-use crate::runtime::Encoding;
+use crate::encoding::Encoding;
 use crate::state::{self, State};
 
 /// One encoded frame, as the track stage receives it.

@@ -200,7 +200,7 @@ fn a_failing_json_lines_sink_does_not_stop_zenoh_and_fails_the_run_at_the_end() 
         })
         .wait()
         .unwrap();
-    let session = gdvae_node::publish::open_session(&config).unwrap();
+    let session = gdvae_node::zenoh_session::open_session(&config.zenoh).unwrap();
     // The subscription reaches the node's session before the replay starts.
     let probe = session.declare_publisher(config.state_key("s")).wait().unwrap();
     assert!(wait_until(Duration::from_secs(10), || {
@@ -443,7 +443,7 @@ fn a_router_outage_is_counted_and_publishing_resumes_when_it_returns() {
     .unwrap()];
     let key = config.state_key("m");
     let (first, before) = router(&endpoint, &key);
-    let session = gdvae_node::publish::open_session(&config).unwrap();
+    let session = gdvae_node::zenoh_session::open_session(&config.zenoh).unwrap();
     let stop = Arc::new(AtomicBool::new(false));
     let stats = Arc::new(Stats::default());
     let handle = {

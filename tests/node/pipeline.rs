@@ -78,7 +78,7 @@ fn replaying_the_sample_publishes_every_frame_in_order_on_zenoh() {
         "stream = \"walk\"\nkind = \"mcap\"\npath = {:?}\nspeed = 0.0",
         sample_recording().display().to_string()
     ))];
-    let node = gdvae_node::publish::open_session(&config).unwrap();
+    let node = gdvae_node::zenoh_session::open_session(&config.zenoh).unwrap();
     let client = client_session(&endpoint);
     let (_subscriber, received) = collect(&client, "gdvae/e2e/**");
     wait_for_subscriber(&node, "gdvae/e2e/walk/state");
@@ -142,7 +142,7 @@ fn a_single_stream_at_its_own_rate_is_encoded_without_waiting_for_a_batch() {
         "stream = \"walk\"\nkind = \"mcap\"\npath = {:?}\nspeed = 1.0",
         sample_recording().display().to_string()
     ))];
-    let node = gdvae_node::publish::open_session(&config).unwrap();
+    let node = gdvae_node::zenoh_session::open_session(&config.zenoh).unwrap();
     let client = client_session(&endpoint);
     let (_subscriber, received) = collect(&client, "gdvae/single/walk/state");
     wait_for_subscriber(&node, "gdvae/single/walk/state");
@@ -178,7 +178,7 @@ fn stop_drains_the_frames_in_flight_and_status_answers_while_running() {
         "stream = \"meshes\"\nkind = \"files\"\npath = {:?}\nrepeat = true",
         repo().join("sim/samples/meshes").display().to_string()
     ))];
-    let node = gdvae_node::publish::open_session(&config).unwrap();
+    let node = gdvae_node::zenoh_session::open_session(&config.zenoh).unwrap();
     let client = client_session(&endpoint);
     let (stop, stats, handle) = start(config, node);
     assert!(
@@ -248,7 +248,7 @@ fn zenoh_sources_decode_cdr_and_depthai_and_count_what_they_reject() {
         .flat_map(f32::to_le_bytes)
         .collect();
 
-    let node = gdvae_node::publish::open_session(&config).unwrap();
+    let node = gdvae_node::zenoh_session::open_session(&config.zenoh).unwrap();
     let client = client_session(&endpoint);
     let (_subscriber, received) = collect(&client, "gdvae/live/**");
     wait_for_subscriber(&node, "gdvae/live/ros/state");
@@ -367,7 +367,7 @@ fn a_live_feed_that_goes_silent_and_returns_resumes_and_the_gap_is_counted() {
         .take(8)
         .map(|m| m.data.to_vec())
         .collect();
-    let node = gdvae_node::publish::open_session(&config).unwrap();
+    let node = gdvae_node::zenoh_session::open_session(&config.zenoh).unwrap();
     let client = client_session(&endpoint);
     let (stop, stats, handle) = start(config, node);
     let publisher = client

@@ -188,7 +188,8 @@ fn a_source_can_carry_its_own_sensor_pose() {
     .iter()
     .map(|t| toml::from_str(t).unwrap())
     .collect();
-    let preparer = Preparer::new(&PrepareSettings::default(), 256, 1.0).with_sources(&sources);
+    let preparer =
+        Preparer::new(&PrepareSettings::default(), 256, 1.0).with_sensor_poses(sources.iter().map(|s| s.sensor_pose()));
     let frame = |stream: &str| Frame {
         stream: stream.into(),
         sequence: 0,

@@ -15,10 +15,16 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use crate::cloud::{PointCloud, Unit};
-use crate::config::SourceSettings;
+use crate::sources::files::file_or_folder;
+use crate::sources::outlet::{Intake, Outlet};
 use crate::sources::ros2::{decode_camera_info, decode_depth_image, decode_point_cloud2, CameraIntrinsics};
-use crate::sources::rosbag2::{Sqlite3Bag, Storage};
-use crate::sources::Outlet;
+use rosbag2::{Sqlite3Bag, Storage};
+
+pub mod mcap;
+mod message;
+pub mod rosbag2;
+
+pub use message::RecordedMessage;
 
 const POINT_CLOUD2: &str = "sensor_msgs/msg/PointCloud2";
 const IMAGE: &str = "sensor_msgs/msg/Image";
@@ -89,16 +95,6 @@ pub enum RecordingError {
     Topic { path: PathBuf, message: String },
 }
 
-/// One message of a recording, with its channel's topic and schema (type) name.
-#[derive(Debug, Clone)]
-pub struct RecordedMessage {
-    pub topic: Arc<str>,
-    pub schema: Arc<str>,
-    /// When it was recorded (ns): MCAP's log time, rosbag2 sqlite3's timestamp.
-    pub log_time: u64,
-    pub data: Vec<u8>,
-}
-
 /// One file of a recording and how it stores its messages.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RecordingFile {
@@ -130,9 +126,9 @@ fn storage_of(path: &Path) -> Result<Storage, RecordingError> {
         path: path.to_path_buf(),
         source,
     })?;
-    if head[..n].starts_with(super::mcap::MAGIC) {
+    if head[..n].starts_with(mcap::MAGIC) {
         Ok(Storage::Mcap)
-    } else if super::rosbag2::is_sqlite(&head[..n]) {
+    } else if rosbag2::is_sqlite(&head[..n]) {
         Ok(Storage::Sqlite3)
     } else {
         Err(RecordingError::Format {
@@ -146,7 +142,7 @@ fn storage_of(path: &Path) -> Result<Storage, RecordingError> {
 /// `metadata.yaml` lists them; or, without metadata, a folder's `.mcap` (else `.db3`) files by name.
 pub fn recording_files(path: &Path) -> Result<Vec<RecordingFile>, RecordingError> {
     if path.is_dir() && path.join("metadata.yaml").is_file() {
-        let metadata = super::rosbag2::read_metadata(path).map_err(|message| RecordingError::Format {
+        let metadata = rosbag2::read_metadata(path).map_err(|message| RecordingError::Format {
             path: path.to_path_buf(),
             message,
         })?;
@@ -167,7 +163,7 @@ pub fn recording_files(path: &Path) -> Result<Vec<RecordingFile>, RecordingError
         }]);
     }
     for (extension, storage) in [("mcap", Storage::Mcap), ("db3", Storage::Sqlite3)] {
-        let files = super::file_or_folder(path, &[extension]).map_err(|source| RecordingError::Io {
+        let files = file_or_folder(path, &[extension]).map_err(|source| RecordingError::Io {
             path: path.to_path_buf(),
             source,
         })?;
@@ -186,7 +182,7 @@ pub fn topics(file: &RecordingFile) -> Result<Vec<(String, String)>, RecordingEr
     match file.storage {
         Storage::Mcap => {
             let mapped = map(&file.path)?;
-            super::mcap::topics(&mapped).map_err(|message| RecordingError::Format {
+            mcap::topics(&mapped).map_err(|message| RecordingError::Format {
                 path: file.path.clone(),
                 message,
             })
@@ -212,11 +208,11 @@ pub fn for_each_message(
         Storage::Mcap => {
             let mapped = map(&file.path)?;
             // Only the sound prefix goes to the reader; what lies beyond is the damage.
-            let scanned = super::mcap::scan(&mapped).map_err(|message| RecordingError::Format {
+            let scanned = mcap::scan(&mapped).map_err(|message| RecordingError::Format {
                 path: file.path.clone(),
                 message,
             })?;
-            for message in super::mcap::messages(&mapped[..scanned.sound_bytes]) {
+            for message in mcap::messages(&mapped[..scanned.sound_bytes]) {
                 match message {
                     Ok(m) if !wanted.contains(&&*m.topic) => {}
                     Ok(m) => {
@@ -429,14 +425,14 @@ impl Replayer<'_> {
 /// Replays the recording into `outlet`. Errors opening the recording end the source; a message
 /// that does not decode is a rejection and the replay goes on; a cut or damaged rest of a file is
 /// one rejection after every message before it was replayed.
-pub fn run(source: &SourceSettings, settings: &RecordingSettings, mut outlet: Outlet) -> Result<(), RecordingError> {
+pub fn run(intake: &Intake, settings: &RecordingSettings, mut outlet: Outlet) -> Result<(), RecordingError> {
     let files = recording_files(&settings.path)?;
     loop {
         let mut replayer = Replayer {
             settings,
-            max_points: source.max_points,
+            max_points: intake.max_points,
             outlet: &mut outlet,
-            unit: source.unit.unwrap_or(Unit::Metre),
+            unit: intake.unit.unwrap_or(Unit::Metre),
             clock: None,
             intrinsics: None,
             waiting: None,

@@ -5,13 +5,10 @@
 
 use std::sync::Arc;
 
-use super::recording::RecordedMessage;
+use super::message::{RecordedMessage, MAX_RECORD_BYTES};
 
-/// Largest chunk the reader will decompress (bytes). A chunk's header says how large it is
-/// uncompressed; a hostile or corrupt header would otherwise make the reader allocate whatever it
-/// claims. 512 MiB holds any frame `max_points` allows at its default (4 M points x 32 bytes)
-/// four times over.
-pub const MAX_CHUNK_BYTES: u64 = 512 << 20;
+/// Largest chunk the reader will decompress (bytes): the readers' one record limit.
+pub const MAX_CHUNK_BYTES: u64 = MAX_RECORD_BYTES;
 
 pub const MAGIC: &[u8] = b"\x89MCAP0\r\n";
 const OP_SCHEMA: u8 = 0x03;

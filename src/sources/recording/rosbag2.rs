@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use rusqlite::{Connection, OpenFlags};
 
-use super::recording::RecordedMessage;
+use super::message::{RecordedMessage, MAX_RECORD_BYTES};
 
 /// How a recording file stores its messages.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -19,7 +19,7 @@ pub enum Storage {
 }
 
 /// The largest message accepted from a sqlite3 bag (bytes): the same bound as an MCAP chunk.
-pub const MAX_MESSAGE_BYTES: usize = super::mcap::MAX_CHUNK_BYTES as usize;
+pub const MAX_MESSAGE_BYTES: usize = MAX_RECORD_BYTES as usize;
 
 /// What a bag's `metadata.yaml` says about its files.
 #[derive(Debug, Clone, PartialEq)]
