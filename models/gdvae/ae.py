@@ -217,6 +217,7 @@ def ae_loss(model: Autoencoder, canonical_points: torch.Tensor, generator=None,
     return AELosses(total, parts), output
 
 
+@torch.no_grad()
 def restore_batch_norms(ae: Autoencoder, clouds: torch.Tensor) -> None:
     """Each PointNet batch norm set to its input's mean and spread over `clouds` [B, N, 3] (inputs
     like the training ones), so that training mode normalises as before the export's folding (an

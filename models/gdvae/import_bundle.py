@@ -121,7 +121,6 @@ def state_from_bundle(bundle: Path, ae: Autoencoder, vae: LatentVAE) -> tuple[di
     return as_tensors(ae_state, ae.state_dict()), as_tensors(vae_state, vae.state_dict()), absent
 
 
-@torch.no_grad()
 def architecture(manifest: dict, rotation_head: str):
     """The recipe a manifest names, with its sizes."""
     model, sizes, training = manifest["model"], manifest["sizes"], manifest.get("training", {})
