@@ -14,10 +14,10 @@ use gdvae_node::config::{Config, Format};
 use gdvae_node::evaluate::EvaluateOptions;
 use gdvae_node::pipeline::{self, RunOptions, RunSummary};
 use gdvae_node::prepare::{Preparer, Sampling};
-use gdvae_node::zenoh_session::open_session;
 use gdvae_node::runtime::{loaded_library, Encoder};
 use gdvae_node::sources::files::{read_cloud, FileOptions};
 use gdvae_node::stats::{cpu_steal_seconds, peak_memory_mib, Stats, STAGES};
+use gdvae_node::zenoh_session::open_session;
 
 #[derive(Parser)]
 #[command(
@@ -641,15 +641,22 @@ fn print_evaluation(report: &gdvae_node::evaluate::Report, summary: &RunSummary)
             s.same_family_changes
         );
     }
-    let p = &o.pose_code;
-    println!(
-        "  pose code z_E, frame-to-frame step: walking median {} ({} steps), standing {} ({} steps), ratio {}",
-        fmt_opt(p.walking_step_median, 1.0, 4),
-        p.walking_steps,
-        fmt_opt(p.standing_step_median, 1.0, 4),
-        p.standing_steps,
-        fmt_opt(p.ratio, 1.0, 2)
-    );
+    for (label, p) in [("raw", &o.pose_code), ("published", &o.pose_code_published)] {
+        println!(
+            "  pose code z_E ({label}): frame-to-frame step walking {} / standing {}, ratio {} ({} / {} steps); \
+             spread over 1 s walking {} / standing {}, ratio {} ({} / {} windows)",
+            fmt_opt(p.walking_step_median, 1.0, 4),
+            fmt_opt(p.standing_step_median, 1.0, 4),
+            fmt_opt(p.ratio, 1.0, 2),
+            p.walking_steps,
+            p.standing_steps,
+            fmt_opt(p.walking_spread_median, 1.0, 4),
+            fmt_opt(p.standing_spread_median, 1.0, 4),
+            fmt_opt(p.spread_ratio, 1.0, 2),
+            p.walking_windows,
+            p.standing_windows,
+        );
+    }
     let states: u64 = summary.snapshot.streams.values().map(|c| c.published).sum();
     println!(
         "  replay: {states} states in {:.1} s ({:.1} frames/s)",

@@ -323,37 +323,88 @@ pub fn separability(segments: &[Segment], frames: usize) -> Separability {
 pub const WALKING_SPEED_M_S: f64 = 0.15;
 pub const STANDING_SPEED_M_S: f64 = 0.03;
 
-/// Whether the pose code z_E follows the body (issue 32): its frame-to-frame steps while the subject
-/// walks (a gait changes the pose every frame) against while it stands (its pose drifts slowly).
-/// A z_E that carries nothing steps alike in both, and its ratio is about 1; a dead one (every
+/// Frames per window of `window_spreads`: one second of the sim's 30 Hz camera.
+pub const SPREAD_WINDOW_FRAMES: usize = 30;
+
+/// Whether the pose code z_E follows the body (issue 32), two ways:
+/// - its frame-to-frame steps while the subject walks against while it stands: at 30 Hz a gait
+///   moves the pose little from one frame to the next, so this mostly compares per-frame noise;
+/// - its spread over one-second windows (`window_spreads`) while walking against while standing: a
+///   gait sweeps the pose through its cycle within a second, a standing subject's code only jitters.
+///
+/// A z_E that carries nothing moves alike in both, and its ratios are about 1; a dead one (every
 /// step zero) has none.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct PoseCodeMotion {
     pub walking_steps: usize,
     pub standing_steps: usize,
-    /// Median Euclidean distance between the raw z_E of consecutive frames of one subject.
+    /// Median Euclidean distance between the z_E of consecutive frames of one subject.
     pub walking_step_median: Option<f64>,
     pub standing_step_median: Option<f64>,
     /// walking median over standing median.
     pub ratio: Option<f64>,
+    pub walking_windows: usize,
+    pub standing_windows: usize,
+    /// Median over windows of z_E's root-mean-square distance from the window's mean.
+    pub walking_spread_median: Option<f64>,
+    pub standing_spread_median: Option<f64>,
+    /// walking spread median over standing spread median.
+    pub spread_ratio: Option<f64>,
 }
 
-/// `steps`: per pair of consecutive frames of one subject, the raw z_E step and the subject's true
-/// horizontal speed (m/s).
-pub fn pose_code_motion(steps: &[(f64, f64)]) -> PoseCodeMotion {
-    let walking = sorted(steps.iter().filter(|(_, v)| *v > WALKING_SPEED_M_S).map(|(s, _)| *s));
-    let standing = sorted(steps.iter().filter(|(_, v)| *v < STANDING_SPEED_M_S).map(|(s, _)| *s));
-    let walking_step_median = quantile(&walking, 0.5);
-    let standing_step_median = quantile(&standing, 0.5);
+/// `steps`: per pair of consecutive frames of one subject, the z_E step and the subject's true
+/// horizontal speed (m/s); `spreads`: per window, z_E's spread and the window's mean true speed.
+pub fn pose_code_motion(steps: &[(f64, f64)], spreads: &[(f64, f64)]) -> PoseCodeMotion {
+    let (walking, standing) = by_motion(steps);
+    let (walking_spread, standing_spread) = by_motion(spreads);
+    let median = |v: &[f64]| quantile(v, 0.5);
     PoseCodeMotion {
         walking_steps: walking.len(),
         standing_steps: standing.len(),
-        walking_step_median,
-        standing_step_median,
-        ratio: walking_step_median
-            .zip(standing_step_median)
-            .and_then(|(w, s)| (s > 0.0).then(|| w / s)),
+        walking_step_median: median(&walking),
+        standing_step_median: median(&standing),
+        ratio: ratio(median(&walking), median(&standing)),
+        walking_windows: walking_spread.len(),
+        standing_windows: standing_spread.len(),
+        walking_spread_median: median(&walking_spread),
+        standing_spread_median: median(&standing_spread),
+        spread_ratio: ratio(median(&walking_spread), median(&standing_spread)),
     }
+}
+
+/// The values of (value, speed) pairs taken while walking, and while standing, each sorted.
+fn by_motion(values: &[(f64, f64)]) -> (Vec<f64>, Vec<f64>) {
+    (
+        sorted(values.iter().filter(|(_, v)| *v > WALKING_SPEED_M_S).map(|(s, _)| *s)),
+        sorted(values.iter().filter(|(_, v)| *v < STANDING_SPEED_M_S).map(|(s, _)| *s)),
+    )
+}
+
+fn ratio(numerator: Option<f64>, denominator: Option<f64>) -> Option<f64> {
+    numerator.zip(denominator).and_then(|(n, d)| (d > 0.0).then(|| n / d))
+}
+
+/// One subject's consecutive frames (code, true speed in m/s) cut into non-overlapping windows of
+/// `window` frames (a shorter tail is left out): per window, the codes' root-mean-square Euclidean
+/// distance from their mean, and the mean speed.
+pub fn window_spreads(run: &[(Vec<f32>, f64)], window: usize) -> Vec<(f64, f64)> {
+    if window == 0 {
+        return Vec::new();
+    }
+    run.chunks_exact(window)
+        .map(|frames| {
+            let dimensions = frames[0].0.len();
+            let mean: Vec<f64> = (0..dimensions)
+                .map(|d| frames.iter().map(|(z, _)| z[d] as f64).sum::<f64>() / window as f64)
+                .collect();
+            let squared: f64 = frames
+                .iter()
+                .map(|(z, _)| z.iter().zip(&mean).map(|(x, m)| (*x as f64 - m).powi(2)).sum::<f64>())
+                .sum();
+            let speed = frames.iter().map(|(_, v)| v).sum::<f64>() / window as f64;
+            ((squared / window as f64).sqrt(), speed)
+        })
+        .collect()
 }
 
 /// The Euclidean distance between two codes.

@@ -146,11 +146,49 @@ pub struct RecordingReport {
     pub filtered_yaw_steps: AngleErrors,
     /// The raw z_E's frame-to-frame steps while the subject walks and while it stands.
     pub pose_code: Option<PoseCodeMotion>,
+    /// The same for the published (filtered) z_E, what a subscriber sees.
+    pub pose_code_published: Option<PoseCodeMotion>,
     #[serde(skip)]
     pub rows: Vec<Row>,
-    /// Per pair of consecutive matched frames of one subject: (raw z_E step, true speed in m/s).
+    /// What `pose_code` and `pose_code_published` were computed from, pooled by `Overall`.
     #[serde(skip)]
-    pub pose_steps: Vec<(f64, f64)>,
+    pub raw_pose_samples: PoseCodeSamples,
+    #[serde(skip)]
+    pub published_pose_samples: PoseCodeSamples,
+}
+
+/// What `metrics::pose_code_motion` reads of one z_E signal (raw or published) of a recording: the
+/// frame-to-frame steps and the one-second windows' spreads, each with the true speed, built
+/// from runs of consecutive frames of one subject.
+#[derive(Debug, Clone, Default)]
+pub struct PoseCodeSamples {
+    pub steps: Vec<(f64, f64)>,
+    pub spreads: Vec<(f64, f64)>,
+    run: Vec<(Vec<f32>, f64)>,
+}
+
+impl PoseCodeSamples {
+    /// The next frame of the subject's run: its code, the frame before's, and the true speed.
+    fn push(&mut self, code: &[f32], earlier: &[f32], speed: f64) {
+        self.steps.push((metrics::code_step(code, earlier), speed));
+        self.run.push((code.to_vec(), speed));
+    }
+
+    /// The run of consecutive frames ended (a change of subject, a frame missing, the end).
+    fn end_run(&mut self) {
+        self.spreads
+            .extend(metrics::window_spreads(&self.run, metrics::SPREAD_WINDOW_FRAMES));
+        self.run.clear();
+    }
+
+    fn extend(&mut self, other: &Self) {
+        self.steps.extend_from_slice(&other.steps);
+        self.spreads.extend_from_slice(&other.spreads);
+    }
+
+    fn motion(&self) -> PoseCodeMotion {
+        metrics::pose_code_motion(&self.steps, &self.spreads)
+    }
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -169,6 +207,8 @@ pub struct Overall {
     pub separability: Vec<Separability>,
     /// Whether z_E follows the gait: its steps while walking against while standing.
     pub pose_code: PoseCodeMotion,
+    /// The same for the published (filtered) z_E.
+    pub pose_code_published: PoseCodeMotion,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -196,7 +236,8 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
     let mut raw_family: BTreeMap<String, Vec<f64>> = BTreeMap::new();
     let mut filtered_family: BTreeMap<String, Vec<f64>> = BTreeMap::new();
     let mut changes_all = Changes::default();
-    let mut pose_steps_all = Vec::new();
+    let mut raw_pose_all = PoseCodeSamples::default();
+    let mut published_pose_all = PoseCodeSamples::default();
     for recording in recordings {
         let own = states.get(recording.stream.as_str()).cloned().unwrap_or_default();
         let (report, own_segments) = recording_report(
@@ -221,7 +262,8 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
             position_all.push(row.position_m);
         }
         segments.extend(own_segments);
-        pose_steps_all.extend_from_slice(&report.pose_steps);
+        raw_pose_all.extend(&report.raw_pose_samples);
+        published_pose_all.extend(&report.published_pose_samples);
         if let Some(changes) = &report.changes {
             changes_all.add(changes);
         }
@@ -252,7 +294,8 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
             .iter()
             .map(|n| metrics::separability(&segments, *n))
             .collect(),
-        pose_code: metrics::pose_code_motion(&pose_steps_all),
+        pose_code: raw_pose_all.motion(),
+        pose_code_published: published_pose_all.motion(),
     };
     Report {
         schema: "gdvae.evaluate/1",
@@ -293,7 +336,8 @@ fn recording_report(
     let mut segments: Vec<Segment> = Vec::new();
     let mut matched_truth = vec![false; truth.len()];
     let mut reported_at = Vec::new();
-    let mut pose_steps = Vec::new();
+    let mut raw_pose = PoseCodeSamples::default();
+    let mut published_pose = PoseCodeSamples::default();
     let mut previous: Option<(usize, &State)> = None;
     for state in states {
         let Some(&(index, t)) = state.stamps.sensor_ns.and_then(|s| by_stamp.get(&s)) else {
@@ -304,8 +348,13 @@ fn recording_report(
             let moved = (t.translation[0] - truth[before].translation[0])
                 .hypot(t.translation[1] - truth[before].translation[1]);
             if seconds > 0.0 {
-                pose_steps.push((metrics::code_step(&state.raw.z_e, &earlier.raw.z_e), moved / seconds));
+                let speed = moved / seconds;
+                raw_pose.push(&state.raw.z_e, &earlier.raw.z_e, speed);
+                published_pose.push(&state.filtered.z_e, &earlier.filtered.z_e, speed);
             }
+        } else {
+            raw_pose.end_run();
+            published_pose.end_run();
         }
         previous = Some((index, state));
         matched_truth[index] = true;
@@ -337,6 +386,8 @@ fn recording_report(
             change_reported: state.event.is_some(),
         });
     }
+    raw_pose.end_run();
+    published_pose.end_run();
     // True changes: frames whose subject differs from the frame before.
     let true_at: Vec<usize> = (1..truth.len())
         .filter(|&i| truth[i].subject != truth[i - 1].subject)
@@ -366,9 +417,11 @@ fn recording_report(
             .then(|| metrics::match_changes(&true_at, &reported_at, options.tolerance_frames, truth.len())),
         changes_reported: states.iter().filter(|s| s.event.is_some()).count(),
         filtered_yaw_steps: metrics::angle_steps(&yaws),
-        pose_code: has_truth.then(|| metrics::pose_code_motion(&pose_steps)),
+        pose_code: has_truth.then(|| raw_pose.motion()),
+        pose_code_published: has_truth.then(|| published_pose.motion()),
         rows,
-        pose_steps,
+        raw_pose_samples: raw_pose,
+        published_pose_samples: published_pose,
     };
     (report, segments)
 }

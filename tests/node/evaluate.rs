@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use gdvae_node::evaluate::metrics::{
-    angle_errors, code_step, match_changes, pose_code_motion, retrieval, separability, Segment,
+    angle_errors, code_step, match_changes, pose_code_motion, retrieval, separability, window_spreads, Segment,
 };
 
 use crate::helpers::repo;
@@ -218,7 +218,17 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
     );
     // Without truth: what can be said without it, and no change counts against truth.
     let bare = &recordings[1];
+    let published = &r["pose_code_published"];
+    assert_eq!(
+        published["walking_steps"], pose["walking_steps"],
+        "the same pairs of frames"
+    );
+    // One-second windows of a subject's consecutive frames: a 60-frame recording with a switch at
+    // its middle has at most two.
+    let windows = pose["walking_windows"].as_u64().unwrap() + pose["standing_windows"].as_u64().unwrap();
+    assert!(windows <= 2, "{pose}");
     assert!(bare["pose_code"].is_null(), "speed needs truth");
+    assert!(bare["pose_code_published"].is_null(), "speed needs truth");
     assert_eq!(bare["has_truth"], false);
     assert!(bare["changes"].is_null() && bare["heading_filtered"].is_null());
     assert_eq!(bare["states"], states, "the same frames replay");
@@ -271,15 +281,43 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
 fn pose_code_motion_compares_steps_while_walking_with_steps_while_standing() {
     // (step, speed m/s): walking above 0.15 m/s, standing below 0.03, the rest neither.
     let steps = [(0.5, 1.0), (0.7, 0.8), (0.9, 0.2), (0.1, 0.0), (0.3, 0.01), (5.0, 0.1)];
-    let p = pose_code_motion(&steps);
+    let p = pose_code_motion(&steps, &[]);
     assert_eq!((p.walking_steps, p.standing_steps), (3, 2));
     assert_eq!(p.walking_step_median, Some(0.7));
     assert!((p.standing_step_median.unwrap() - 0.2).abs() < 1e-12);
     assert!((p.ratio.unwrap() - 3.5).abs() < 1e-9, "{p:?}");
+    assert_eq!((p.walking_windows, p.spread_ratio), (0, None));
     // A dead code steps by nothing: no ratio. One that ignores the gait: about 1.
-    let dead = pose_code_motion(&[(0.0, 1.0), (0.0, 0.0)]);
+    let dead = pose_code_motion(&[(0.0, 1.0), (0.0, 0.0)], &[]);
     assert_eq!((dead.walking_step_median, dead.ratio), (Some(0.0), None));
-    assert_eq!(pose_code_motion(&[(0.2, 1.0), (0.2, 0.0)]).ratio, Some(1.0));
-    assert_eq!(pose_code_motion(&[]).ratio, None);
+    assert_eq!(pose_code_motion(&[(0.2, 1.0), (0.2, 0.0)], &[]).ratio, Some(1.0));
+    assert_eq!(pose_code_motion(&[], &[]).ratio, None);
     assert!((code_step(&[0.0, 3.0], &[4.0, 0.0]) - 5.0).abs() < 1e-12);
+    // Spreads are sorted into walking and standing windows as steps are.
+    let p = pose_code_motion(&[], &[(2.0, 0.5), (0.4, 0.0), (0.6, 0.02), (9.0, 0.1)]);
+    assert_eq!((p.walking_windows, p.standing_windows), (1, 2));
+    assert!((p.spread_ratio.unwrap() - 4.0).abs() < 1e-9, "{p:?}");
+}
+
+#[test]
+fn window_spreads_are_the_rms_distance_from_each_window_mean() {
+    // Two windows of two frames and a tail left out. Window 1: codes (0,0) and (2,0), mean (1,0),
+    // each 1 away: spread 1, speed (0.2 + 0.4) / 2. Window 2: one code twice: spread 0.
+    let run = vec![
+        (vec![0.0, 0.0], 0.2),
+        (vec![2.0, 0.0], 0.4),
+        (vec![1.0, 5.0], 0.0),
+        (vec![1.0, 5.0], 0.0),
+        (vec![7.0, 7.0], 9.0),
+    ];
+    let spreads = window_spreads(&run, 2);
+    assert_eq!(spreads.len(), 2);
+    assert!(
+        (spreads[0].0 - 1.0).abs() < 1e-12 && (spreads[0].1 - 0.3).abs() < 1e-12,
+        "{spreads:?}"
+    );
+    assert_eq!(spreads[1], (0.0, 0.0));
+    // A diagonal: (0,0), (3,4), mean (1.5,2): each 2.5 away.
+    assert!((window_spreads(&[(vec![0.0, 0.0], 1.0), (vec![3.0, 4.0], 1.0)], 2)[0].0 - 2.5).abs() < 1e-12);
+    assert!(window_spreads(&run, 0).is_empty() && window_spreads(&run[..1], 2).is_empty());
 }
