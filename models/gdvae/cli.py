@@ -249,7 +249,8 @@ def export_command(args) -> int:
         held_out = dataset.indices("test")
         if not held_out:
             raise ValueError(f"{args.calibrate}: no held-out meshes to calibrate on (check splits.json)")
-        calibration = z_i_variance_calibration(ae, vae, dataset, held_out, full_rotations=chosen.ae.full_rotations)
+        calibration = z_i_variance_calibration(ae, vae, dataset, held_out, full_rotations=chosen.ae.full_rotations,
+                                              depth_camera=chosen.depth_camera_views)
         log.info("z_I variance calibration: x %.4g (per-dimension ratios p10 %.3g, p90 %.3g; %d subjects)",
                  calibration["z_I_variance_scale"], calibration["ratio_p10"], calibration["ratio_p90"],
                  calibration["groups"])

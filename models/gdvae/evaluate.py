@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .data import MeshDataset
+from .data import DepthCamera, MeshDataset
 from .geometry import chamfer, quaternion_to_matrix, random_rotation_matrices, rotate
 from .metrics import (clustering_consistency, coverage_and_fidelity, disentanglement, heading_errors,
                       variance_calibration)
@@ -130,8 +130,6 @@ def paired_retrieval(ae, vae, dataset: MeshDataset, indices: list[int], seed: in
     - subject by z_I: the share whose nearest z_I among other poses of the family is the same
       subject (chance: 1 / subjects), against the same with x_c.
     Empty when the split has no shared poses."""
-    from .data import DepthCamera
-
     truths = [dataset.items[i].truth or {} for i in indices]
     if not all("pose_id" in t for t in truths):
         return {}
@@ -298,19 +296,23 @@ def rotation_diagnostics(ae, dataset: MeshDataset, indices: list[int], clouds: t
 @torch.no_grad()
 @torch.no_grad()
 def z_i_variance_calibration(ae, vae, dataset: MeshDataset, indices: list[int], seed: int = 0,
-                             full_rotations: bool = False) -> dict:
+                             full_rotations: bool = False, depth_camera: bool = False) -> dict:
     """What the node's tracker needs of z_I's variances: how far one subject's z_I spreads over its
     poses, each seen from one camera-like view in a random rotation, against the variance the
-    encoder reports (`variance_calibration`). Written into the bundle by `export --calibrate`."""
+    encoder reports (`variance_calibration`). Written into the bundle by `export --calibrate`.
+    `depth_camera`: the views are the sim's depth camera's (self-occlusion and stereo noise, what
+    the node sees) rather than the faces turned towards a camera; a run trained on such views is
+    calibrated on them."""
     if not dataset.has_ground_truth:
         raise ValueError(f"{dataset.root}: no ground truth (subjects) to calibrate against")
     torch.manual_seed(seed)  # the rotations: the same bundle gets the same calibration
-    sampler = PointSampler(dataset, indices, ae.config.points, seed)
+    sampler = PointSampler(dataset, indices, ae.config.points, seed, DepthCamera() if depth_camera else None)
     views = sampler.views(np.arange(len(indices)), 1, 1.0)
     codes = encode_all(ae, vae, views, random_rotation_matrices(len(views), full=full_rotations), None)
     subjects = [dataset.items[i].subject for i in indices]
+    kind = "one depth-camera view each" if depth_camera else "one camera-like view each"
     return {**variance_calibration(codes["mu_I"].numpy(), codes["lv_I"].numpy(), subjects),
-            "measured_on": f"{dataset.root}, {len(indices)} held-out meshes, one camera-like view each"}
+            "measured_on": f"{dataset.root}, {len(indices)} held-out meshes, {kind}"}
 
 
 def partial_view_metrics(ae, vae, dataset: MeshDataset, indices: list[int], clouds: torch.Tensor,

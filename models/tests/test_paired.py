@@ -156,7 +156,7 @@ def paired_dataset(tmp_path_factory):
 def test_a_paired_smoke_run_trains_exports_and_the_node_loads_it(paired_dataset, tmp_path):
     run, bundle = tmp_path / "run", tmp_path / "bundle"
     assert main(["train", str(paired_dataset), "--out", str(run), "--recipe", "smoke", "--regime", "paired",
-                 "--ae", "std", "--set", "recipe.vae_batch=24"]) == 0
+                 "--ae", "std", "--set", "recipe.vae_batch=24", "--set", "recipe.depth_camera_views=true"]) == 0
     lines = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     vae = [line for line in lines if line["stage"] == "vae"]
     assert vae and vae[-1]["swap"] > 0 and vae[-1]["identity_contrast"] > 0
@@ -167,9 +167,12 @@ def test_a_paired_smoke_run_trains_exports_and_the_node_loads_it(paired_dataset,
     for view in ("whole", "depth_camera"):
         assert set(paired[view]) == {"pose_by_z_E", "pose_by_x_c", "subject_by_z_I", "subject_by_x_c"}
         assert all(0.0 <= value <= 1.0 for value in paired[view].values())
-    assert main(["export", str(run), "--out", str(bundle)]) == 0
+    assert main(["export", str(run), "--out", str(bundle), "--calibrate", str(paired_dataset)]) == 0
     manifest = json.loads((bundle / "manifest.json").read_text())
     assert manifest["model"]["regime"] == "paired"
+    # A run trained on depth-camera views is calibrated on them: what the node's tracker sees.
+    assert "depth-camera view" in manifest["calibration"]["measured_on"]
+    assert manifest["calibration"]["z_I_variance_scale"] > 0
     node = ROOT / "target" / "release" / "gdvae-node"
     if not node.exists():
         pytest.skip("target/release/gdvae-node is not built (make binaries)")
