@@ -16,7 +16,7 @@ use gdvae_node::pipeline::{self, RunOptions, RunSummary};
 use gdvae_node::prepare::{Preparer, Sampling};
 use gdvae_node::runtime::{loaded_library, Encoder};
 use gdvae_node::sources::files::{read_cloud, FileOptions};
-use gdvae_node::stats::{cpu_steal_seconds, peak_memory_mib, Stats, STAGES};
+use gdvae_node::stats::{cpu_steal_seconds, Stats};
 use gdvae_node::zenoh_session::open_session;
 
 #[derive(Parser)]
@@ -220,7 +220,7 @@ fn run_node(args: RunArgs) -> Result<()> {
         bail!("the config has no [[source]]; nothing to run");
     }
     let summary = run_pipeline(&config, RunOptions::default(), args.live_summary)?;
-    print_report(&summary, None, None, false)
+    Ok(pipeline::report::print_report(&summary, None, None, false)?)
 }
 
 /// `replay`: the inputs as fast as possible (or at `--speed`), every frame kept; the report.
@@ -252,7 +252,7 @@ fn replay(args: ReplayArgs) -> Result<()> {
             .max(64) as usize;
         Some(gdvae_node::benchmark::encoder_alone(&bundle, &config.model, frames)?)
     };
-    print_report(&summary, baseline.as_ref().map(|b| (b, &config)), steal, args.json)?;
+    pipeline::report::print_report(&summary, baseline.as_ref().map(|b| (b, &config)), steal, args.json)?;
     require_states(&summary)
 }
 
@@ -453,7 +453,10 @@ fn evaluate(args: EvaluateArgs) -> Result<()> {
     let outputs: Vec<_> = rx.try_iter().collect();
     let report = gdvae_node::evaluate::report(&recordings, &outputs, &options);
     if let Some(path) = &args.states {
-        write_matched_states(path, &gdvae_node::evaluate::matched_states(&recordings, &outputs))?;
+        gdvae_node::evaluate::print::write_matched_states(
+            path,
+            &gdvae_node::evaluate::matched_states(&recordings, &outputs),
+        )?;
     }
     if let Some(folder) = plots {
         let threshold = match config.track.change_detector {
@@ -467,27 +470,14 @@ fn evaluate(args: EvaluateArgs) -> Result<()> {
         Some("-") => println!("{}", serde_json::to_string_pretty(&report)?),
         Some(path) => {
             std::fs::write(path, serde_json::to_string_pretty(&report)?).with_context(|| format!("writing {path}"))?;
-            print_evaluation(&report, &summary);
+            gdvae_node::evaluate::print::print(&report, &summary);
             eprintln!("evaluate: report in {path}");
         }
-        None => print_evaluation(&report, &summary),
+        None => gdvae_node::evaluate::print::print(&report, &summary),
     }
     if report.overall.matched == 0 && report.overall.with_truth > 0 {
         bail!("no state matched any ground-truth frame by sensor stamp");
     }
-    Ok(())
-}
-
-fn write_matched_states(path: &Path, states: &[gdvae_node::evaluate::MatchedState]) -> Result<()> {
-    use std::io::Write;
-    let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
-    let mut out = std::io::BufWriter::new(file);
-    for state in states {
-        serde_json::to_writer(&mut out, state)?;
-        out.write_all(b"\n")?;
-    }
-    out.flush().with_context(|| format!("writing {}", path.display()))?;
-    eprintln!("evaluate: {} state(s) in {}", states.len(), path.display());
     Ok(())
 }
 
@@ -516,153 +506,6 @@ fn track_overrides(
         table.try_into().context("--set: the track settings do not parse")?;
     settings.validate().map_err(anyhow::Error::msg)?;
     Ok(settings)
-}
-
-fn fmt_opt(value: Option<f64>, scale: f64, decimals: usize) -> String {
-    value
-        .map(|v| format!("{:.*}", decimals, v * scale))
-        .unwrap_or_else(|| "-".into())
-}
-
-fn print_evaluation(report: &gdvae_node::evaluate::Report, summary: &RunSummary) {
-    println!("convention: {}", report.convention);
-    println!(
-        "{:<22} {:>6} {:>5} | {:>23} | {:>23} | {:>10} | {:>14} {:>5} {:>6}",
-        "recording",
-        "frames",
-        "rej",
-        "yaw raw med/p90/>30%",
-        "yaw filt med/p90/>30%",
-        "pos med m",
-        "changes found",
-        "false",
-        "delay"
-    );
-    let angles = |a: &Option<gdvae_node::evaluate::metrics::AngleErrors>| match a {
-        Some(a) => format!(
-            "{:>6}/{:>6}/{:>5}%",
-            fmt_opt(a.median_deg, 1.0, 1),
-            fmt_opt(a.p90_deg, 1.0, 1),
-            fmt_opt(a.over_30_deg, 100.0, 0)
-        ),
-        None => "no ground truth".into(),
-    };
-    for r in &report.recordings {
-        let changes = r
-            .changes
-            .as_ref()
-            .map(|c| {
-                (
-                    format!("{}/{}", c.found, c.true_changes),
-                    c.false_changes.to_string(),
-                    fmt_opt(c.median_delay_frames, 1.0, 0),
-                )
-            })
-            .unwrap_or((format!("{} reported", r.changes_reported), "-".into(), "-".into()));
-        println!(
-            "{:<22} {:>6} {:>5} | {:>23} | {:>23} | {:>10} | {:>14} {:>5} {:>6}",
-            r.stream,
-            r.states,
-            r.rejected,
-            angles(&r.heading_raw),
-            angles(&r.heading_filtered),
-            fmt_opt(r.position.as_ref().and_then(|p| p.median_m), 1.0, 3),
-            changes.0,
-            changes.1,
-            changes.2
-        );
-        if !r.has_truth {
-            println!(
-                "{:<22} filtered yaw steps: median {} deg, p90 {} deg per frame",
-                "",
-                fmt_opt(r.filtered_yaw_steps.median_deg, 1.0, 2),
-                fmt_opt(r.filtered_yaw_steps.p90_deg, 1.0, 2)
-            );
-        }
-        if r.truth_without_state > 0 || r.states_without_truth > 0 {
-            println!(
-                "{:<22} unmatched: {} truth frames without a state, {} states without truth",
-                "", r.truth_without_state, r.states_without_truth
-            );
-        }
-    }
-    let o = &report.overall;
-    println!(
-        "overall ({} recordings, {} matched frames): heading raw {}, filtered {} (median/p90/>30%)",
-        o.recordings,
-        o.matched,
-        angles(&Some(o.heading_raw.clone())),
-        angles(&Some(o.heading_filtered.clone()))
-    );
-    for (family, a) in &o.heading_filtered_by_family {
-        let raw = o.heading_raw_by_family.get(family).cloned();
-        println!(
-            "  {family:<10} heading raw {} (>150: {}%), filtered {} (>150: {}%)",
-            angles(&raw),
-            fmt_opt(raw.as_ref().and_then(|r| r.over_150_deg), 100.0, 0),
-            angles(&Some(a.clone())),
-            fmt_opt(a.over_150_deg, 100.0, 0)
-        );
-    }
-    let c = &o.changes;
-    println!(
-        "  identity changes: {}/{} found within {} frames (recall {}), {} false = {} per 1000 frames, median delay {} frames",
-        c.found,
-        c.true_changes,
-        report.tolerance_frames,
-        fmt_opt(c.recall, 1.0, 3),
-        c.false_changes,
-        fmt_opt(c.false_per_1000_frames, 1.0, 2),
-        fmt_opt(c.median_delay_frames, 1.0, 0)
-    );
-    println!(
-        "  position (centre_m vs truth, horizontal): median {} m, p90 {} m",
-        fmt_opt(o.position.median_m, 1.0, 3),
-        fmt_opt(o.position.p90_m, 1.0, 3)
-    );
-    for r in &o.retrieval {
-        println!(
-            "  identity retrieval after {:>2} frames: top-1 {} (same family {}) over {} subjects",
-            r.frames,
-            fmt_opt(r.top1, 1.0, 3),
-            fmt_opt(r.top1_same_family, 1.0, 3),
-            r.queries
-        );
-    }
-    for s in &o.separability {
-        println!(
-            "  z_I separability over {:>2} frames: AUC {} (same family {}), {} of {} changes above the within-subject p99.9 (same family {} of {})",
-            s.frames,
-            fmt_opt(s.auc, 1.0, 3),
-            fmt_opt(s.auc_same_family, 1.0, 3),
-            fmt_opt(s.found_at_p999, 1.0, 2),
-            s.changes,
-            fmt_opt(s.found_at_p999_same_family, 1.0, 2),
-            s.same_family_changes
-        );
-    }
-    for (label, p) in [("raw", &o.pose_code), ("published", &o.pose_code_published)] {
-        println!(
-            "  pose code z_E ({label}): frame-to-frame step walking {} / standing {}, ratio {} ({} / {} steps); \
-             spread over 1 s walking {} / standing {}, ratio {} ({} / {} windows)",
-            fmt_opt(p.walking_step_median, 1.0, 4),
-            fmt_opt(p.standing_step_median, 1.0, 4),
-            fmt_opt(p.ratio, 1.0, 2),
-            p.walking_steps,
-            p.standing_steps,
-            fmt_opt(p.walking_spread_median, 1.0, 4),
-            fmt_opt(p.standing_spread_median, 1.0, 4),
-            fmt_opt(p.spread_ratio, 1.0, 2),
-            p.walking_windows,
-            p.standing_windows,
-        );
-    }
-    let states: u64 = summary.snapshot.streams.values().map(|c| c.published).sum();
-    println!(
-        "  replay: {states} states in {:.1} s ({:.1} frames/s)",
-        summary.busy.as_secs_f64(),
-        states as f64 / summary.busy.as_secs_f64().max(1e-9)
-    );
 }
 
 /// A replay that published nothing did not do its job: every input failed. The error says how
@@ -738,153 +581,7 @@ fn run_pipeline(config: &Config, options: RunOptions, live_summary: bool) -> Res
     }
     let stats = Arc::new(Stats::default());
     if live_summary {
-        return run_with_live_summary(config, &bundle, session, stop, stats, options);
+        return pipeline::report::run_with_live_summary(config, &bundle, session, stop, stats, options);
     }
     Ok(pipeline::run(config, &bundle, session, stop, stats, options)?)
-}
-
-/// `run --live-summary`: a readable line per state on stdout, read back from the node's own
-/// zenoh publications (so it shows exactly what subscribers get).
-fn run_with_live_summary(
-    config: &Config,
-    bundle: &Bundle,
-    session: Option<zenoh::Session>,
-    stop: Arc<AtomicBool>,
-    stats: Arc<Stats>,
-    options: RunOptions,
-) -> Result<RunSummary> {
-    use zenoh::Wait;
-    let Some(session) = session.filter(|_| config.publish.zenoh) else {
-        bail!("--live-summary reads the node's zenoh states; enable publish.zenoh");
-    };
-    let subscriber = session
-        .declare_subscriber(config.state_key("*"))
-        .callback(|sample| {
-            let Ok(state) = serde_json::from_slice::<gdvae_node::state::State>(&sample.payload().to_bytes()) else {
-                return;
-            };
-            let event = state
-                .event
-                .as_ref()
-                .map(|e| format!("  << identity {} -> {}", e.previous, e.identity))
-                .unwrap_or_default();
-            println!(
-                "{:<12} #{:<5} identity {} ({}{} fused, conf {:.2})  yaw {:>7.1} deg  z_E[0..3] {:>6.2} {:>6.2} {:>6.2}  {:>5.1} ms{event}",
-                state.stream,
-                state.sequence,
-                state.shape.identity,
-                if state.shape.inlier { "" } else { "outlier, " },
-                state.shape.frames_fused,
-                state.shape.confidence,
-                state.filtered.yaw.to_degrees(),
-                state.filtered.z_e.first().copied().unwrap_or(0.0),
-                state.filtered.z_e.get(1).copied().unwrap_or(0.0),
-                state.filtered.z_e.get(2).copied().unwrap_or(0.0),
-                state.latency.total_ms,
-            );
-        })
-        .wait()
-        .map_err(|e| anyhow::anyhow!("zenoh: {e}"))?;
-    let summary = pipeline::run(config, bundle, Some(session), stop, stats, options)?;
-    std::thread::sleep(std::time::Duration::from_millis(200));
-    drop(subscriber);
-    Ok(summary)
-}
-
-fn print_report(
-    summary: &RunSummary,
-    baseline: Option<(&gdvae_node::benchmark::EncoderAlone, &Config)>,
-    steal_s: Option<f64>,
-    json: bool,
-) -> Result<()> {
-    let s = &summary.snapshot;
-    let published: u64 = s.streams.values().map(|c| c.published).sum();
-    let rejected: u64 = s.streams.values().map(|c| c.rejected.values().sum::<u64>()).sum();
-    let wall = summary.busy.as_secs_f64().max(1e-9);
-    let throughput = published as f64 / wall;
-    let memory = peak_memory_mib();
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as f64;
-    // The share of the run's CPU time (all cores) that the host took: its latency tail's context.
-    let steal_share = steal_s.map(|steal| steal / (summary.wall.as_secs_f64().max(1e-9) * cores));
-    if json {
-        let report = serde_json::json!({
-            "wall_s": summary.wall.as_secs_f64(),
-            "busy_s": wall,
-            "states": published,
-            "rejected": rejected,
-            "throughput_fps": throughput,
-            "peak_memory_mib": memory,
-            "host_cpu_steal_s": steal_s,
-            "host_cpu_steal_share": steal_share,
-            "counters": s,
-            "encoder_alone": baseline.map(|(b, _)| b),
-            "throughput_vs_encoder_alone": baseline.map(|(b, _)| throughput / b.frames_per_second),
-        });
-        println!("{}", serde_json::to_string_pretty(&report)?);
-        return Ok(());
-    }
-    println!("streams:");
-    for (name, c) in &s.streams {
-        println!(
-            "  {name:<16} {:>6} received {:>6} published {:>4} dropped {:>4} rejected {:?}{}",
-            c.received,
-            c.published,
-            c.dropped,
-            c.rejected.values().sum::<u64>(),
-            c.rejected,
-            if c.publish_errors > 0 {
-                format!(" {} publish errors", c.publish_errors)
-            } else {
-                String::new()
-            } + &if c.feed_gaps > 0 {
-                format!(" {} feed gap(s), {:.1} s silent", c.feed_gaps, c.feed_gap_s)
-            } else {
-                String::new()
-            }
-        );
-    }
-    for (stream, reason) in &summary.failed_sources {
-        println!("  {stream:<16} (optional) {reason}");
-    }
-    println!("latency (ms)      count     mean      p50      p90      p99      max");
-    for stage in STAGES {
-        if let Some(l) = s.stages.get(stage) {
-            println!(
-                "  {stage:<12} {:>8} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.2}",
-                l.count, l.mean_ms, l.p50_ms, l.p90_ms, l.p99_ms, l.max_ms
-            );
-        }
-    }
-    println!(
-        "throughput: {published} states in {wall:.2} s from first ingest to last publish = {throughput:.1} frames/s \
-         (mean batch {:.2}, {rejected} rejected; {:.2} s with start-up)",
-        s.mean_batch,
-        summary.wall.as_secs_f64()
-    );
-    if let Some((b, config)) = baseline {
-        println!(
-            "ONNX Runtime alone (batch {}, {} yaw copies, {} worker(s) x {} thread(s)): {:.1} frames/s -> pipeline at {:.0} % of it",
-            config.model.max_batch,
-            config.model.yaw_copies,
-            config.model.workers,
-            config.model.threads,
-            b.frames_per_second,
-            100.0 * throughput / b.frames_per_second
-        );
-    }
-    if let Some(mib) = memory {
-        println!("peak memory (VmHWM): {mib:.1} MiB");
-    }
-    if let (Some(steal), Some(share)) = (steal_s, steal_share) {
-        println!(
-            "host CPU steal during the run: {steal:.2} s ({:.1} % of {cores} cores' time){}",
-            100.0 * share,
-            if share > 0.002 {
-                ": the hypervisor ran other work on these cores; latency tails are not the node's alone"
-            } else {
-                ""
-            }
-        );
-    }
-    Ok(())
 }

@@ -16,6 +16,7 @@
 
 pub mod metrics;
 pub mod plot;
+pub mod print;
 pub mod truth;
 
 use std::collections::{BTreeMap, HashMap};

@@ -18,6 +18,7 @@
 //! through `sources::start`, sinks are behind `publish::Publisher`.
 
 mod faults;
+pub mod report;
 mod stages;
 mod status;
 mod work;
@@ -281,7 +282,8 @@ pub fn run(
             .declare_token(config.liveliness_key())
             .wait()
             .map_err(|e| PipelineError::Publish(crate::publish::PublishError::Zenoh(e.to_string())))?;
-        let status = status_queryable(session, config, bundle, stats.clone(), queues.clone(), started)?;
+        let status = status_queryable(session, config, bundle, stats.clone(), queues.clone(), started)
+            .map_err(|e| PipelineError::Publish(crate::publish::PublishError::Zenoh(e.to_string())))?;
         presence = Some((token, status));
     }
 

@@ -8,7 +8,6 @@ use std::time::{Duration, Instant};
 use zenoh::{Session, Wait};
 
 use super::faults::Queues;
-use super::PipelineError;
 use crate::bundle::Bundle;
 use crate::config::Config;
 use crate::stats::Stats;
@@ -20,7 +19,7 @@ pub(super) fn status_queryable(
     stats: Arc<Stats>,
     queues: Arc<Queues>,
     started: Instant,
-) -> Result<zenoh::query::Queryable<()>, PipelineError> {
+) -> Result<zenoh::query::Queryable<()>, zenoh::Error> {
     let m = &bundle.manifest;
     let fixed = serde_json::json!({
         "schema": "gdvae.status/1",
@@ -51,7 +50,6 @@ pub(super) fn status_queryable(
             }
         })
         .wait()
-        .map_err(|e| PipelineError::Publish(crate::publish::PublishError::Zenoh(e.to_string())))
 }
 
 pub(super) fn summary_logger(finished: &AtomicBool, stats: &Stats, seconds: f64) {

@@ -10,7 +10,7 @@ use nalgebra::{Matrix3, Rotation3, Unit as UnitVector, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::{OutlierMethod, OutlierSettings};
+use super::settings::{OutlierMethod, OutlierSettings};
 
 /// x' = R x + t for every point.
 pub fn transform(points: &mut [[f32; 3]], rotation: &Matrix3<f32>, translation: &Vector3<f32>) {

@@ -4,7 +4,7 @@
 
 use std::io::Write;
 
-use super::{PublishError, Sink};
+use super::sink::{PublishError, Sink};
 use crate::state::Output;
 
 pub struct JsonLines {

@@ -10,6 +10,7 @@
 
 mod jsonl;
 pub mod ros2;
+mod sink;
 mod zenoh_sink;
 
 use zenoh::Session;
@@ -18,16 +19,12 @@ use serde::{Deserialize, Serialize};
 
 use crate::bundle::Bundle;
 use crate::state::Output;
+
 use crate::zenoh_session::NodeSettings;
+pub use sink::{PublishError, Sink};
+pub use zenoh_sink::{encode, Format};
 
 pub use ros2::Ros2Settings;
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Format {
-    Json,
-    Cbor,
-}
 
 #[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
@@ -59,34 +56,6 @@ impl Default for PublishSettings {
             jsonl: None,
             ros2: Ros2Settings::default(),
         }
-    }
-}
-
-#[derive(Debug, thiserror::Error)]
-pub enum PublishError {
-    #[error("zenoh: {0}")]
-    Zenoh(String),
-    #[error("JSON lines sink {path}: {source}")]
-    Sink { path: String, source: std::io::Error },
-    #[error("encoding a message: {0}")]
-    Encode(String),
-    #[error("ROS 2: {0}")]
-    Ros2(String),
-    #[error("every output has failed; the message is lost")]
-    Closed,
-}
-
-/// One way out of the node.
-pub trait Sink: Send {
-    /// Sends one message (a state with its identity event, or a rejection).
-    fn publish(&mut self, output: &Output) -> Result<(), PublishError>;
-    /// Whether it still takes messages: a sink that failed for good closes itself.
-    fn is_open(&self) -> bool {
-        true
-    }
-    /// Flushes what it buffers; an error if it failed at any time during the run.
-    fn flush(&mut self) -> Result<(), PublishError> {
-        Ok(())
     }
 }
 
@@ -167,16 +136,5 @@ impl Publisher {
             }
         }
         first
-    }
-}
-
-pub fn encode<T: serde::Serialize>(format: Format, message: &T) -> Result<Vec<u8>, PublishError> {
-    match format {
-        Format::Json => serde_json::to_vec(message).map_err(|e| PublishError::Encode(e.to_string())),
-        Format::Cbor => {
-            let mut bytes = Vec::new();
-            ciborium::into_writer(message, &mut bytes).map_err(|e| PublishError::Encode(e.to_string()))?;
-            Ok(bytes)
-        }
     }
 }

@@ -21,7 +21,7 @@ use std::time::Instant;
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
-use super::{PublishError, Sink};
+use super::sink::{PublishError, Sink};
 use crate::bundle::Bundle;
 use crate::ros2::graph::{self, EntityKind, MessageType, Qos};
 use crate::ros2::msg::{self, Header, Marker, Pose};

@@ -8,10 +8,31 @@ use zenoh::bytes::Encoding;
 use zenoh::qos::CongestionControl;
 use zenoh::{Session, Wait};
 
-use super::Format;
-use super::{encode, PublishError, Sink};
+use serde::{Deserialize, Serialize};
+
+use super::sink::{PublishError, Sink};
 use crate::state::Output;
 use crate::zenoh_session::NodeSettings;
+
+/// How states are encoded on the node's own zenoh keys (`[publish] format`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Format {
+    Json,
+    Cbor,
+}
+
+/// `message` in `format`.
+pub fn encode<T: serde::Serialize>(format: Format, message: &T) -> Result<Vec<u8>, PublishError> {
+    match format {
+        Format::Json => serde_json::to_vec(message).map_err(|e| PublishError::Encode(e.to_string())),
+        Format::Cbor => {
+            let mut bytes = Vec::new();
+            ciborium::into_writer(message, &mut bytes).map_err(|e| PublishError::Encode(e.to_string()))?;
+            Ok(bytes)
+        }
+    }
+}
 
 pub struct ZenohSink {
     prefix: String,

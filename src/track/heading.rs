@@ -20,7 +20,7 @@
 use std::collections::VecDeque;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
-use super::TrackSettings;
+use super::settings::TrackSettings;
 
 /// Vote per frame of motion on the sense (log-odds units): a strong witness of front and back (the
 /// encoder's vote per frame is `heading_encoder_vote`).

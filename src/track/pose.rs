@@ -3,7 +3,7 @@
 //! rotation) and the yaw about the up axis is unwrapped. The heading tracker (`heading.rs`) may
 //! replace the yaw of the smoothed rotation.
 
-use super::{Smoothing, TrackSettings};
+use super::settings::{Smoothing, TrackSettings};
 
 /// One-euro filter of one scalar (Casiez et al. 2012).
 #[derive(Debug, Clone)]

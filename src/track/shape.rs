@@ -18,7 +18,7 @@
 
 use std::collections::VecDeque;
 
-use super::{ChangeDetector, TrackSettings};
+use super::settings::{ChangeDetector, TrackSettings};
 
 /// What one frame did to the shape estimate.
 #[derive(Debug, Clone, PartialEq)]

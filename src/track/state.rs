@@ -1,7 +1,8 @@
 //! The published state of one encoded frame: the encoder's own output for this frame (`raw`) and
 //! what the stream's filters make of it (`filtered`, `shape`).
 
-use super::{confidence_from_log_variance, StreamTracker};
+use super::pose::confidence_from_log_variance;
+use super::stream::StreamTracker;
 use crate::encoding::Encoding;
 use crate::state::{self, State};
 

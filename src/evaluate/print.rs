@@ -1,0 +1,173 @@
+//! How `gdvae-node evaluate` prints its report on the terminal, and writes its matched states:
+//! the report's own presentation, beside the report (`mod.rs`) it presents.
+
+use std::path::Path;
+
+use anyhow::Context;
+
+use super::{MatchedState, Report};
+use crate::pipeline::RunSummary;
+
+/// The report as `gdvae-node evaluate` prints it: per recording, then overall (docs/tracking.md "Tracking
+/// benchmark" says how to read each line); `summary` is the replay's own.
+pub fn print(report: &Report, summary: &RunSummary) {
+    println!("convention: {}", report.convention);
+    println!(
+        "{:<22} {:>6} {:>5} | {:>23} | {:>23} | {:>10} | {:>14} {:>5} {:>6}",
+        "recording",
+        "frames",
+        "rej",
+        "yaw raw med/p90/>30%",
+        "yaw filt med/p90/>30%",
+        "pos med m",
+        "changes found",
+        "false",
+        "delay"
+    );
+    let angles = |a: &Option<super::metrics::AngleErrors>| match a {
+        Some(a) => format!(
+            "{:>6}/{:>6}/{:>5}%",
+            fmt_opt(a.median_deg, 1.0, 1),
+            fmt_opt(a.p90_deg, 1.0, 1),
+            fmt_opt(a.over_30_deg, 100.0, 0)
+        ),
+        None => "no ground truth".into(),
+    };
+    for r in &report.recordings {
+        let changes = r
+            .changes
+            .as_ref()
+            .map(|c| {
+                (
+                    format!("{}/{}", c.found, c.true_changes),
+                    c.false_changes.to_string(),
+                    fmt_opt(c.median_delay_frames, 1.0, 0),
+                )
+            })
+            .unwrap_or((format!("{} reported", r.changes_reported), "-".into(), "-".into()));
+        println!(
+            "{:<22} {:>6} {:>5} | {:>23} | {:>23} | {:>10} | {:>14} {:>5} {:>6}",
+            r.stream,
+            r.states,
+            r.rejected,
+            angles(&r.heading_raw),
+            angles(&r.heading_filtered),
+            fmt_opt(r.position.as_ref().and_then(|p| p.median_m), 1.0, 3),
+            changes.0,
+            changes.1,
+            changes.2
+        );
+        if !r.has_truth {
+            println!(
+                "{:<22} filtered yaw steps: median {} deg, p90 {} deg per frame",
+                "",
+                fmt_opt(r.filtered_yaw_steps.median_deg, 1.0, 2),
+                fmt_opt(r.filtered_yaw_steps.p90_deg, 1.0, 2)
+            );
+        }
+        if r.truth_without_state > 0 || r.states_without_truth > 0 {
+            println!(
+                "{:<22} unmatched: {} truth frames without a state, {} states without truth",
+                "", r.truth_without_state, r.states_without_truth
+            );
+        }
+    }
+    let o = &report.overall;
+    println!(
+        "overall ({} recordings, {} matched frames): heading raw {}, filtered {} (median/p90/>30%)",
+        o.recordings,
+        o.matched,
+        angles(&Some(o.heading_raw.clone())),
+        angles(&Some(o.heading_filtered.clone()))
+    );
+    for (family, a) in &o.heading_filtered_by_family {
+        let raw = o.heading_raw_by_family.get(family).cloned();
+        println!(
+            "  {family:<10} heading raw {} (>150: {}%), filtered {} (>150: {}%)",
+            angles(&raw),
+            fmt_opt(raw.as_ref().and_then(|r| r.over_150_deg), 100.0, 0),
+            angles(&Some(a.clone())),
+            fmt_opt(a.over_150_deg, 100.0, 0)
+        );
+    }
+    let c = &o.changes;
+    println!(
+        "  identity changes: {}/{} found within {} frames (recall {}), {} false = {} per 1000 frames, median delay {} frames",
+        c.found,
+        c.true_changes,
+        report.tolerance_frames,
+        fmt_opt(c.recall, 1.0, 3),
+        c.false_changes,
+        fmt_opt(c.false_per_1000_frames, 1.0, 2),
+        fmt_opt(c.median_delay_frames, 1.0, 0)
+    );
+    println!(
+        "  position (centre_m vs truth, horizontal): median {} m, p90 {} m",
+        fmt_opt(o.position.median_m, 1.0, 3),
+        fmt_opt(o.position.p90_m, 1.0, 3)
+    );
+    for r in &o.retrieval {
+        println!(
+            "  identity retrieval after {:>2} frames: top-1 {} (same family {}) over {} subjects",
+            r.frames,
+            fmt_opt(r.top1, 1.0, 3),
+            fmt_opt(r.top1_same_family, 1.0, 3),
+            r.queries
+        );
+    }
+    for s in &o.separability {
+        println!(
+            "  z_I separability over {:>2} frames: AUC {} (same family {}), {} of {} changes above the within-subject p99.9 (same family {} of {})",
+            s.frames,
+            fmt_opt(s.auc, 1.0, 3),
+            fmt_opt(s.auc_same_family, 1.0, 3),
+            fmt_opt(s.found_at_p999, 1.0, 2),
+            s.changes,
+            fmt_opt(s.found_at_p999_same_family, 1.0, 2),
+            s.same_family_changes
+        );
+    }
+    for (label, p) in [("raw", &o.pose_code), ("published", &o.pose_code_published)] {
+        println!(
+            "  pose code z_E ({label}): frame-to-frame step walking {} / standing {}, ratio {} ({} / {} steps); \
+             spread over 1 s walking {} / standing {}, ratio {} ({} / {} windows)",
+            fmt_opt(p.walking_step_median, 1.0, 4),
+            fmt_opt(p.standing_step_median, 1.0, 4),
+            fmt_opt(p.ratio, 1.0, 2),
+            p.walking_steps,
+            p.standing_steps,
+            fmt_opt(p.walking_spread_median, 1.0, 4),
+            fmt_opt(p.standing_spread_median, 1.0, 4),
+            fmt_opt(p.spread_ratio, 1.0, 2),
+            p.walking_windows,
+            p.standing_windows,
+        );
+    }
+    let states: u64 = summary.snapshot.streams.values().map(|c| c.published).sum();
+    println!(
+        "  replay: {states} states in {:.1} s ({:.1} frames/s)",
+        summary.busy.as_secs_f64(),
+        states as f64 / summary.busy.as_secs_f64().max(1e-9)
+    );
+}
+
+/// An optional figure, scaled, or "-".
+fn fmt_opt(value: Option<f64>, scale: f64, decimals: usize) -> String {
+    value
+        .map(|v| format!("{:.*}", decimals, v * scale))
+        .unwrap_or_else(|| "-".into())
+}
+
+/// `--states`: every published state as a JSON line with the ground truth it was matched to.
+pub fn write_matched_states(path: &Path, states: &[MatchedState]) -> anyhow::Result<()> {
+    use std::io::Write;
+    let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut out = std::io::BufWriter::new(file);
+    for state in states {
+        serde_json::to_writer(&mut out, state)?;
+        out.write_all(b"\n")?;
+    }
+    out.flush().with_context(|| format!("writing {}", path.display()))?;
+    eprintln!("evaluate: {} state(s) in {}", states.len(), path.display());
+    Ok(())
+}

@@ -1,0 +1,158 @@
+//! `[track]`: the settings of the three filters (shape fusion and identity changes, heading, pose
+//! smoothing), their defaults and their one validation. A leaf the filters read.
+
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Smoothing {
+    None,
+    OneEuro,
+}
+
+/// How the published (filtered) heading is made.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum HeadingMode {
+    /// The heading tracker (`track::heading`).
+    Tracker,
+    /// The yaw of the one-euro-smoothed rotation.
+    OneEuro,
+}
+
+/// How identity changes are found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ChangeDetector {
+    /// CUSUM of the per-frame distances (`track::shape`).
+    Cusum,
+    /// `switch_frames` frames beyond the gate in a row.
+    Consecutive,
+}
+
+/// `[track]`: every setting of the track stage. `config/default.toml` documents each key;
+/// docs/tracking.md says how to tune them for a new bundle or sensor.
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrackSettings {
+    /// A frame's z_I is an outlier (not fused) when its mean squared standardized distance to the
+    /// fused estimate (per dimension) exceeds this.
+    pub shape_gate: f32,
+    /// A change needs at least this many frames of evidence.
+    pub switch_frames: usize,
+    /// Floor on each fused z_I variance, so the filter never becomes certain beyond what
+    /// correlated frames justify (and follows slow drift).
+    pub min_shape_variance: f32,
+    /// Multiplier on the encoder's z_I variances after the bundle's own calibration (manifest
+    /// `calibration`): the sensor's share (frame-to-frame jitter the kit's views do not have).
+    pub shape_variance_scale: f32,
+    pub change_detector: ChangeDetector,
+    /// CUSUM drift allowance k: distances below it count as agreement.
+    pub cusum_drift: f32,
+    /// CUSUM threshold h: a change is reported when the statistic reaches it.
+    pub cusum_threshold: f32,
+    /// Smoothing of z_E and the rotation.
+    pub smoothing: Smoothing,
+    /// One-euro filter: cutoff at rest (Hz) and its increase per unit of speed.
+    pub min_cutoff_hz: f32,
+    pub beta: f32,
+    /// Frame rate assumed when frames carry no usable stamps.
+    pub nominal_rate_hz: f32,
+    /// The published heading: the tracker, or the one-euro-smoothed yaw.
+    pub heading: HeadingMode,
+    /// Standard deviation of the encoder's yaw as a measurement (degrees).
+    pub heading_std_deg: f32,
+    /// Standard deviation of the heading's angular acceleration (rad/s^2): how fast turns may change.
+    pub heading_accel_std: f32,
+    /// Use the direction of motion of the object's centre as a heading measurement.
+    pub heading_from_motion: bool,
+    /// The centre's velocity is its least-squares slope over this window (s).
+    pub motion_window_s: f32,
+    /// Below this speed (m/s) the direction of motion is not used.
+    pub motion_min_speed_mps: f32,
+    /// Standard deviation of the motion direction as a measurement (degrees), at twice the
+    /// minimum speed and above; it widens towards the minimum speed.
+    pub motion_heading_std_deg: f32,
+    /// Most front/back evidence the track keeps (log-odds): how much contrary evidence it takes to
+    /// turn the track round by 180 degrees.
+    pub heading_flip_evidence: f32,
+    /// Front/back evidence one encoder frame adds (log-odds; a walking frame adds 1), before it is
+    /// scaled down for an encoder that jitters more than `heading_std_deg`.
+    pub heading_encoder_vote: f32,
+    /// Share of encoder yaws taken to be wild (any angle): a reading that fits neither the track's
+    /// front nor its back moves it little.
+    pub heading_wild_share: f32,
+    /// Share of the other encoder yaws taken to read the back for the front.
+    pub heading_back_share: f32,
+}
+
+impl Default for TrackSettings {
+    fn default() -> Self {
+        Self {
+            shape_gate: 2.0,
+            switch_frames: 5,
+            min_shape_variance: 4e-4,
+            shape_variance_scale: 2.2,
+            change_detector: ChangeDetector::Cusum,
+            cusum_drift: 3.0,
+            cusum_threshold: 10.0,
+            smoothing: Smoothing::OneEuro,
+            min_cutoff_hz: 1.0,
+            beta: 0.5,
+            nominal_rate_hz: 30.0,
+            heading: HeadingMode::Tracker,
+            heading_std_deg: 12.0,
+            heading_accel_std: 12.0,
+            heading_from_motion: true,
+            motion_window_s: 1.0,
+            motion_min_speed_mps: 0.3,
+            motion_heading_std_deg: 20.0,
+            heading_flip_evidence: 6.0,
+            heading_encoder_vote: 0.5,
+            heading_wild_share: 0.1,
+            heading_back_share: 0.05,
+        }
+    }
+}
+
+impl TrackSettings {
+    pub fn validate(&self) -> Result<(), String> {
+        let positive = [
+            ("shape_gate", self.shape_gate),
+            ("min_shape_variance", self.min_shape_variance),
+            ("shape_variance_scale", self.shape_variance_scale),
+            ("cusum_drift", self.cusum_drift),
+            ("cusum_threshold", self.cusum_threshold),
+            ("min_cutoff_hz", self.min_cutoff_hz),
+            ("nominal_rate_hz", self.nominal_rate_hz),
+            ("heading_std_deg", self.heading_std_deg),
+            ("heading_accel_std", self.heading_accel_std),
+            ("motion_window_s", self.motion_window_s),
+            ("motion_min_speed_mps", self.motion_min_speed_mps),
+            ("motion_heading_std_deg", self.motion_heading_std_deg),
+            ("heading_flip_evidence", self.heading_flip_evidence),
+            ("heading_encoder_vote", self.heading_encoder_vote),
+        ];
+        for (name, value) in positive {
+            if !(value > 0.0 && value.is_finite()) {
+                return Err(format!("track.{name} = {value} must be positive and finite"));
+            }
+        }
+        let shares = [
+            ("heading_wild_share", self.heading_wild_share, 1.0),
+            ("heading_back_share", self.heading_back_share, 0.5),
+        ];
+        for (name, value, below) in shares {
+            if !(value >= 0.0 && value < below) {
+                return Err(format!("track.{name} = {value} must be at least 0 and below {below}"));
+            }
+        }
+        if self.switch_frames == 0 {
+            return Err("track.switch_frames must be at least 1".into());
+        }
+        if !(self.beta >= 0.0 && self.beta.is_finite()) {
+            return Err(format!("track.beta = {} must be >= 0", self.beta));
+        }
+        Ok(())
+    }
+}

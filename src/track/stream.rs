@@ -1,0 +1,65 @@
+//! One stream's three filters together (`StreamTracker`): a frame's codes in, what the filters
+//! say out (`Tracked`); `state.rs` turns that into the published state.
+
+use super::heading::{Heading, HeadingFilter};
+use super::pose::{self, yaw_of, Pose, PoseFilter};
+use super::settings::{HeadingMode, TrackSettings};
+use super::shape::{ShapeFilter, ShapeUpdate};
+
+/// The three filters of one stream.
+#[derive(Debug, Clone)]
+pub struct StreamTracker {
+    pub shape: ShapeFilter,
+    pub pose: PoseFilter,
+    pub heading: HeadingFilter,
+    mode: HeadingMode,
+}
+
+/// What the filters say after one frame.
+#[derive(Debug, Clone)]
+pub struct Tracked {
+    pub shape: ShapeUpdate,
+    /// z_E and the rotation smoothed; with the tracker, `q` and `yaw` carry the tracked heading.
+    pub pose: Pose,
+    /// The tracker's output (None under `heading = "one-euro"`).
+    pub heading: Option<Heading>,
+}
+
+impl StreamTracker {
+    pub fn new(settings: &TrackSettings) -> Self {
+        Self {
+            shape: ShapeFilter::new(settings),
+            pose: PoseFilter::new(settings),
+            heading: HeadingFilter::new(settings),
+            mode: settings.heading,
+        }
+    }
+
+    /// One encoded frame: z_I (mean, log-variance), the rotation q [w, x, y, z], z_E, the object's
+    /// centre (m, gravity frame) and the time since the stream's previous frame (s).
+    pub fn update(&mut self, z_i: (&[f32], &[f32]), q: [f32; 4], z_e: &[f32], centre_m: [f32; 3], dt: f32) -> Tracked {
+        let shape = self.shape.update(z_i.0, z_i.1);
+        if shape.change.is_some() {
+            self.heading.reset();
+        }
+        let mut pose = self.pose.update(q, z_e, dt);
+        let heading = match self.mode {
+            HeadingMode::OneEuro => None,
+            HeadingMode::Tracker => {
+                let heading =
+                    self.heading
+                        .update(pose.yaw_raw as f64, [centre_m[0] as f64, centre_m[1] as f64], dt as f64);
+                // Keep the smoothed rotation's tilt, give it the tracked yaw.
+                pose.q = with_yaw(pose.q, heading.yaw as f32);
+                pose.yaw = heading.yaw as f32;
+                Some(heading)
+            }
+        };
+        Tracked { shape, pose, heading }
+    }
+}
+
+/// `q` [w, x, y, z] turned about +z so that its yaw becomes `yaw`.
+pub fn with_yaw(q: [f32; 4], yaw: f32) -> [f32; 4] {
+    pose::turn_rotation(q, yaw - yaw_of(&q))
+}
