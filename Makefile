@@ -30,7 +30,7 @@ test-python: venv binaries
 binaries:
 	cargo test --workspace --release --no-run
 
-# The tracking benchmark (README "Tracking benchmark"): settings are chosen on `tune`, checked on
+# The tracking benchmark (docs/tracking.md "Tracking benchmark"): settings are chosen on `tune`, checked on
 # `holdout` and `final`. Recordings are made once into $(BENCH_DIR) (default /work/data/bench-tracking).
 bench-tracking: onnxruntime node sim
 	bench/tracking.sh tune
@@ -57,7 +57,7 @@ device-job: venv sim
 		--implementation cp --platform manylinux2014_x86_64 -d .device/wheels trimesh==5.2.0
 	du -sh .device
 
-# Overload soak (README "Faults and overload"): a live feed at SOAK_FACTOR times the node's
+# Overload soak (docs/faults.md): a live feed at SOAK_FACTOR times the node's
 # capacity for SOAK_SECONDS against the real binary; prints the RSS series, drops and latency.
 SOAK_FACTOR ?= 10
 SOAK_SECONDS ?= 60

@@ -19,7 +19,7 @@ on the tracking benchmark before anything is built into the node:
     .venv/bin/python bench/identity_cues.py height TUNE-states.jsonl HOLDOUT-states.jsonl
 
 The states files come from `bench/tracking.sh SET -- --states SET-states.jsonl`. Results with the
-shipped bundle (2026-12-03): README "Tracking benchmark", what limits identity.
+shipped bundle (2026-12-03): docs/tracking.md "Tracking benchmark", what limits identity.
 """
 import argparse
 import itertools

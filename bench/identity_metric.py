@@ -6,7 +6,7 @@ the others.
     .venv/bin/python bench/identity_metric.py TUNE-states.jsonl OTHER-states.jsonl...
 
 The states files come from `bench/tracking.sh SET -- --states OUT/SET-states.jsonl`. Result with
-the shipped bundle (2026-12-02): README "Tracking benchmark", what limits identity.
+the shipped bundle (2026-12-02): docs/tracking.md "Tracking benchmark", what limits identity.
 """
 import json
 import sys

@@ -14,7 +14,7 @@ windows adjacent and 80 frames apart, for subjects turning in place and walking.
 
     .venv/bin/python bench/identity_reference.py SET-states.jsonl...
 
-Result with the shipped bundle (2026-12-02): README "Tracking benchmark", what limits identity.
+Result with the shipped bundle (2026-12-02): docs/tracking.md "Tracking benchmark", what limits identity.
 """
 import json
 import sys

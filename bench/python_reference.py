@@ -1,4 +1,4 @@
-"""A Python reference for the node's replay (README "Replay benchmark"): what a user might write
+"""A Python reference for the node's replay (docs/benchmarks.md): what a user might write
 for the same job with the usual tools, measured on the same recordings, bundle, batch and threads.
 
     python bench/python_reference.py REC... [--config config/replay.toml] [--batch 8] [--threads 2]

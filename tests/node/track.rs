@@ -28,7 +28,7 @@ fn frames(truth: &[f32], sigma: f32, count: usize, rng: &mut ChaCha8Rng) -> Vec<
 /// The synthetic frames report their true noise variance, so an inlier's mean squared standardized
 /// distance averages about 1 (a chi-square per dimension). These tests take the variances as
 /// reported (scale 1) with a gate for such calibrated variances; the defaults are set for the
-/// shipped bundle on camera recordings (README, "Tracking").
+/// shipped bundle on camera recordings (docs/tracking.md).
 fn calibrated() -> TrackSettings {
     TrackSettings {
         shape_gate: 2.5,
