@@ -110,7 +110,7 @@ def recipe(name: str, regime: str = "gdvae++", kind: str = "ftl") -> Recipe:
                       rotation_hidden=(32, 64, 128), shape_hidden=(64, 128, 256), decoder_width=256,
                       gamma_reconstruction=20.0 if kind == "ftl" else 250.0)
         # L_R keeps the paper's 1/n: without it the decoder reconstructs far better but S drops
-        # (models/README.md, "Reconstruction normalisation"); `--relative-reconstruction` drops it.
+        # (models/EXPERIMENTS.md, "Reconstruction normalisation"); `--relative-reconstruction` drops it.
         return Recipe("cpu", ae, replace(vae, latent=ae.latent, width_scale=0.25, flow_hidden=400),
                       ae_iterations=7700, ae_pretrain_iterations=2000, ae_batch=24, ae_learning_rate=1e-3,
                       vae_iterations=3000, vae_batch=256)
