@@ -74,8 +74,9 @@ class Pairing:
 
 @dataclass
 class PairedBatch:
-    """Bank entries of the rows A, B, C (in that order, `rows` each) and the meshes whose codes the
-    swaps must give: B's subject in A's pose, then A's subject in B's pose."""
+    """Bank entries of the rows A, B, C (in that order, `rows` each; with pose pairs a fourth block
+    D: B's subject in A's pose, another view) and the meshes whose codes the swaps must give: B's
+    subject in A's pose, then A's subject in B's pose."""
 
     entries: np.ndarray
     swap_meshes: np.ndarray
@@ -83,16 +84,18 @@ class PairedBatch:
 
 
 class PairedBatches:
-    """Triples drawn from a `Pairing` over a bank with `copies` entries per mesh (mesh-major)."""
+    """Triples drawn from a `Pairing` over a bank with `copies` entries per mesh (mesh-major).
+    `pose_pairs`: quadruples instead, the fourth row D (B's subject in A's pose, a random view)
+    giving z_E a positive of A's pose on another subject and view (`vae.omega_pose_contrast`)."""
 
-    def __init__(self, pairing: Pairing, copies: int, seed: int):
-        self.pairing, self.copies = pairing, copies
+    def __init__(self, pairing: Pairing, copies: int, seed: int, pose_pairs: bool = False):
+        self.pairing, self.copies, self.pose_pairs = pairing, copies, pose_pairs
         self.anchors = np.flatnonzero(pairing.usable())
         self.rng = np.random.default_rng(seed)
 
     def draw(self, batch: int) -> PairedBatch:
         p, rng = self.pairing, self.rng
-        rows = max(1, batch // 3)
+        rows = max(1, batch // (4 if self.pose_pairs else 3))
         _, subjects, poses = p.grid.shape
         a = self.anchors[rng.integers(0, len(self.anchors), rows)]
         f, sa, pa = p.family[a], p.subject_row[a], p.pose_column[a]
@@ -110,7 +113,8 @@ class PairedBatches:
                 break
         keep = np.setdiff1d(np.arange(rows), pending)  # anchors with no partner after 100 draws
         a, f, sa, pa, sb, pb, pc = (x[keep] for x in (a, f, sa, pa, sb, pb, pc))
-        meshes = np.concatenate([a, p.grid[f, sb, pb], p.grid[f, sa, pc]])
+        blocks = [a, p.grid[f, sb, pb], p.grid[f, sa, pc]] + ([p.grid[f, sb, pa]] if self.pose_pairs else [])
+        meshes = np.concatenate(blocks)
         entries = meshes * self.copies + rng.integers(0, self.copies, len(meshes))
         swaps = np.concatenate([p.grid[f, sb, pa], p.grid[f, sa, pb]])
         return PairedBatch(entries, swaps, len(keep))

@@ -562,6 +562,7 @@ def paired_inputs(batches: PairedBatches, bank: dict, batch_size: int, device) -
         "targets": bank["target"][torch.from_numpy(drawn.swap_meshes).to(device)],
         "own_targets": bank["target"][torch.from_numpy(meshes).to(device)],
         "subject": torch.from_numpy(pairing.subject[meshes]).to(device),
+        "pose": torch.from_numpy(pairing.pose[meshes]).to(device),
         "family": torch.from_numpy(pairing.family[meshes]).to(device),
     }
     return torch.from_numpy(drawn.entries).to(device), extra
@@ -597,7 +598,8 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
         raise ValueError(f"the code bank has {size} entries, not a multiple of its {copies} copies per mesh")
     keys = ("q", "x_c", "spectrum", "target") if vae.config.paired else ("q", "x_c", "spectrum")
     on_device = {key: bank[key].to(device) for key in keys}
-    triples = PairedBatches(bank["pairing"], copies, chosen.seed + 1 + state["iteration"]) if vae.config.paired else None
+    triples = (PairedBatches(bank["pairing"], copies, chosen.seed + 1 + state["iteration"],
+                             pose_pairs=vae.config.omega_pose_contrast > 0) if vae.config.paired else None)
     vae.train()
     iteration, budget_ended = start, False
     for iteration in range(start, total):

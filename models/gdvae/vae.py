@@ -83,6 +83,10 @@ class VAEConfig:
     omega_swap: float = 0.0
     omega_contrast: float = 0.0
     contrast_temperature: float = 0.1
+    # Paired batches only (then drawn as quadruples, paired.PairedBatches): the same InfoNCE on
+    # mu_E with the pose for the subject: positives the same shared pose on another subject seen
+    # from another view, negatives the family's other poses in the batch. 0: off.
+    omega_pose_contrast: float = 0.0
     # Paired batches only: L_R's target is the mesh's whole-surface code (the bank's target), not
     # the view's own code. The view's code also holds what the camera saw of the mesh; asked to
     # reproduce it, the decoder makes z_E carry the view, since z_I is held to the subject.
@@ -91,7 +95,7 @@ class VAEConfig:
     @property
     def paired(self) -> bool:
         """Whether training batches must be paired triples (paired.py)."""
-        return self.omega_swap > 0 or self.omega_contrast > 0 or self.reconstruct_canonical
+        return self.omega_swap > 0 or self.omega_contrast > 0 or self.omega_pose_contrast > 0 or self.reconstruct_canonical
 
     @property
     def n_intrinsic(self) -> int:
@@ -100,7 +104,7 @@ class VAEConfig:
     def validate(self) -> None:
         if self.regime not in ("gdvae++", "fo", "paired"):
             raise ValueError(f"regime must be 'gdvae++', 'fo' or 'paired', got {self.regime!r}")
-        for name in ("omega_swap", "omega_contrast"):
+        for name in ("omega_swap", "omega_contrast", "omega_pose_contrast"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0 (0: off), got {getattr(self, name)}")
         if not self.contrast_temperature > 0:
@@ -309,13 +313,16 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
     views = view_consistency(mu_i) if c.omega_view > 0 else mu_i.new_zeros(())
     consistency = consistency + c.omega_view * views
 
-    swap = contrast = mu_i.new_zeros(())
+    swap = contrast = pose_contrast = mu_i.new_zeros(())
     if c.paired:
         if c.omega_swap > 0:
             swap = swap_error(model.decode_shape, z_e, z_i, paired["targets"], model.code_norm)
         if c.omega_contrast > 0:
             contrast = identity_contrast(mu_i, paired["subject"], paired["family"], c.contrast_temperature)
-    supervised = c.omega_swap * swap + c.omega_contrast * contrast
+        if c.omega_pose_contrast > 0:
+            # The same contrast with the shared pose as the label: a pose is one family's.
+            pose_contrast = identity_contrast(mu_e, paired["pose"], paired["family"], c.contrast_temperature)
+    supervised = c.omega_swap * swap + c.omega_contrast * contrast + c.omega_pose_contrast * pose_contrast
 
     covariance = disentanglement_penalty(c.covariance_form, [mu_r, mu_e, mean_i])
     # omega_J = 0 turns L_J off, and its cost (most of a step) with it.
@@ -328,6 +335,6 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
         "total": total, "reconstruction": reconstruction, "quaternion": rotation,
         **terms, "log_p_lambda": log_likelihood, "intrinsic_consistency": intrinsic,
         "spectrum_error": spectrum_error, "variance_nll": variance, "view_consistency": views, "covariance": covariance, "jacobian": jacobian,
-        "swap": swap, "identity_contrast": contrast,
+        "swap": swap, "identity_contrast": contrast, "pose_contrast": pose_contrast,
     }
     return VAELosses(total, {k: float(v.detach()) for k, v in parts.items()})

@@ -55,6 +55,20 @@ def truths_of(truths, meshes):
     return [truths[m] for m in meshes]
 
 
+def test_pose_pairs_add_b_in_a_s_pose_as_a_fourth_row():
+    truths = grid_truths(drop={"biped-1-2", "quadruped-3-0"})
+    batches = PairedBatches(Pairing.from_truths(truths), copies=3, seed=0, pose_pairs=True)
+    for _ in range(20):
+        drawn = batches.draw(96)
+        r = drawn.rows
+        assert r == 24 and len(drawn.entries) == 4 * r and len(drawn.swap_meshes) == 2 * r
+        a, b, _, d = (truths_of(truths, drawn.entries[k * r:(k + 1) * r] // 3) for k in range(4))
+        for ta, tb, td in zip(a, b, d):
+            # D shows A's pose on B's subject: a pose positive for A across subjects.
+            assert (td["subject"], td["pose_id"]) == (tb["subject"], ta["pose_id"])
+            assert td["subject"] != ta["subject"]
+
+
 def test_a_dataset_without_shared_poses_cannot_be_paired():
     truths = grid_truths()
     del truths[3]["pose_id"]
@@ -135,6 +149,18 @@ def test_the_paired_terms_train_the_vae_and_are_refused_without_a_paired_batch()
     assert vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False,
                     paired={**paired, "own_targets": x_c + 3.0}).parts["reconstruction"] == pytest.approx(near)
     model.config.reconstruct_canonical = True
+    # The pose contrast is off unless asked; on, it reaches z_E's encoder through mu_E.
+    assert losses.parts["pose_contrast"] == 0
+    model.config.omega_pose_contrast = 50.0
+    pose = torch.cat([torch.arange(rows), torch.arange(rows) + rows, torch.arange(rows) + 2 * rows])
+    pose[2 * rows:] = torch.arange(rows)  # C shares A's pose here, a positive across subjects
+    model.zero_grad()
+    with_pose = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False,
+                         paired={**paired, "pose": pose})
+    assert with_pose.parts["pose_contrast"] > 0
+    with_pose.total.backward()
+    assert any(p.grad.abs().sum() > 0 for p in model.extrinsic.mean.parameters())
+    model.config.omega_pose_contrast = 0.0
     with pytest.raises(ValueError, match="not paired"):
         vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False)
     with pytest.raises(ValueError, match="paired"):
