@@ -260,6 +260,29 @@ def export_command(args) -> int:
     return 0
 
 
+def bench_command(args) -> int:
+    import json
+
+    import torch
+
+    from .bench import bench, report
+    from .data import load_dataset
+    from .train import recipe, use_model_units
+
+    chosen = recipe(args.recipe, regime=args.regime, kind=args.ae)
+    if args.partial_views is not None:
+        chosen.partial_views = args.partial_views
+    for assignment in args.set or []:
+        apply_setting(chosen, assignment)
+    device = torch.device(training_device(args.device))
+    dataset = load_dataset(args.dataset, limit=args.limit)
+    use_model_units(dataset, chosen.model_units)
+    figures = bench(dataset, chosen, device, seconds=args.seconds)
+    figures["command"] = "python -m gdvae " + " ".join(args.argv)
+    print(json.dumps(figures, indent=2) if args.json else report(figures) + f"\n  command: {figures['command']}")
+    return 0
+
+
 def import_bundle_command(args) -> int:
     from .import_bundle import import_bundle
 
@@ -372,6 +395,20 @@ def main(argv=None) -> int:
                         help="measure z_I's variance calibration on DATASET's held-out subjects (the node's "
                              "tracker scales the encoder's variances by it); without it the bundle has none (1)")
     export.set_defaults(handler=export_command)
+
+    benchmark = commands.add_parser(
+        "bench", help="throughput of the training path: batch maker clouds/s, AE and VAE step it/s (figures)")
+    benchmark.add_argument("dataset", help="dataset folder whose training meshes the batch maker samples")
+    benchmark.add_argument("--recipe", default="cpu", choices=["cpu", "gpu", "paper", "smoke"])
+    benchmark.add_argument("--regime", default="fo", choices=["gdvae++", "fo", "paired"])
+    benchmark.add_argument("--ae", default="std", choices=["ftl", "std"])
+    benchmark.add_argument("--partial-views", type=float, help="share of AE copies that are camera-like views")
+    benchmark.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE", help="as for train")
+    benchmark.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:1")
+    benchmark.add_argument("--seconds", type=float, default=10.0, help="seconds timed per part (default 10)")
+    benchmark.add_argument("--limit", type=int, help="load only the first N meshes")
+    benchmark.add_argument("--json", action="store_true")
+    benchmark.set_defaults(handler=bench_command)
 
     importing = commands.add_parser(
         "import-bundle", help="a shipped bundle back into a run folder (its AE and VAE weights, read from the ONNX graphs)")
