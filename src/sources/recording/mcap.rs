@@ -256,7 +256,7 @@ fn read_channel(content: &[u8]) -> Option<(u16, u16, String)> {
 }
 
 /// The messages of a recording's sound prefix (see [`scan`]), in file order, decompressing
-/// chunks as they come, with every record length (inside chunks too) held to
+/// each chunk once as it comes, with every record length (inside chunks too) held to
 /// `record_length_limit` and no read larger than the bytes that remain. Replaces the mcap crate's
 /// `MessageStream`, whose chunk reader reserves whatever an inner record's length claims. A
 /// damaged record ends the stream with its error.
@@ -287,17 +287,20 @@ impl<'a> BoundedMessages<'a> {
     }
 }
 
-impl Iterator for BoundedMessages<'_> {
-    type Item = Result<RecordedMessage, String>;
-
-    fn next(&mut self) -> Option<Self::Item> {
+impl BoundedMessages<'_> {
+    /// Hands each message, its bytes lent from the decompressed chunk, to `each` until it returns
+    /// false; a damaged record is handed over as `Err` and ends the walk. The walk resumes where it
+    /// stopped when called again.
+    pub fn walk(&mut self, mut each: impl FnMut(Result<RecordedMessage<'_>, String>) -> bool) {
         use mcap::sans_io::LinearReadEvent;
         while !self.done {
-            let event = match self.reader.next_event()? {
-                Ok(event) => event,
-                Err(e) => {
+            let event = match self.reader.next_event() {
+                None => return,
+                Some(Ok(event)) => event,
+                Some(Err(e)) => {
                     self.done = true;
-                    return Some(Err(e.to_string()));
+                    each(Err(e.to_string()));
+                    return;
                 }
             };
             match event {
@@ -307,7 +310,7 @@ impl Iterator for BoundedMessages<'_> {
                     if n == 0 {
                         // The end of the sound prefix: whatever lies beyond is the scan's to report.
                         self.done = true;
-                        return None;
+                        return;
                     }
                     self.reader.insert(n).copy_from_slice(&self.bytes[self.at..self.at + n]);
                     self.reader.notify_read(n);
@@ -328,34 +331,57 @@ impl Iterator for BoundedMessages<'_> {
                         }
                     }
                     OP_MESSAGE => {
-                        let mut at = 0;
-                        let (Some(channel_id), Some(_sequence)) = (read_u16(data, &mut at), read_u32(data, &mut at))
-                        else {
+                        let message = read_message(&self.channels, data);
+                        if message.is_err() {
                             self.done = true;
-                            return Some(Err("a message record cut short".into()));
-                        };
-                        let (Some(log_time), Some(_publish_time)) = (read_u64(data, &mut at), read_u64(data, &mut at))
-                        else {
-                            self.done = true;
-                            return Some(Err("a message record cut short".into()));
-                        };
-                        let Some((topic, schema)) = self.channels.get(&channel_id).cloned() else {
-                            self.done = true;
-                            return Some(Err(format!("a message on unknown channel {channel_id}")));
-                        };
-                        return Some(Ok(RecordedMessage {
-                            topic,
-                            schema,
-                            log_time,
-                            data: data[at..].to_vec(),
-                        }));
+                        }
+                        if !each(message) || self.done {
+                            return;
+                        }
                     }
                     OP_DATA_END => self.done = true,
                     _ => {}
                 },
             }
         }
-        None
+    }
+}
+
+/// A message record: its channel's topic and schema, its log time and its payload (lent).
+fn read_message<'a>(
+    channels: &std::collections::HashMap<u16, (Arc<str>, Arc<str>)>,
+    data: &'a [u8],
+) -> Result<RecordedMessage<'a>, String> {
+    let mut at = 0;
+    let (Some(channel_id), Some(_sequence)) = (read_u16(data, &mut at), read_u32(data, &mut at)) else {
+        return Err("a message record cut short".into());
+    };
+    let (Some(log_time), Some(_publish_time)) = (read_u64(data, &mut at), read_u64(data, &mut at)) else {
+        return Err("a message record cut short".into());
+    };
+    let Some((topic, schema)) = channels.get(&channel_id).cloned() else {
+        return Err(format!("a message on unknown channel {channel_id}"));
+    };
+    Ok(RecordedMessage {
+        topic,
+        schema,
+        log_time,
+        data: std::borrow::Cow::Borrowed(&data[at..]),
+    })
+}
+
+/// The messages one by one, each with its own copy of its bytes (for a caller that keeps them;
+/// a replay uses [`BoundedMessages::walk`]).
+impl Iterator for BoundedMessages<'_> {
+    type Item = Result<RecordedMessage<'static>, String>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        let mut next = None;
+        self.walk(|message| {
+            next = Some(message.map(RecordedMessage::into_owned));
+            false
+        });
+        next
     }
 }
 

@@ -202,7 +202,7 @@ pub fn topics(file: &RecordingFile) -> Result<Vec<(String, String)>, RecordingEr
 pub fn for_each_message(
     file: &RecordingFile,
     wanted: &[&str],
-    mut each: impl FnMut(RecordedMessage) -> bool,
+    mut each: impl FnMut(RecordedMessage<'_>) -> bool,
 ) -> Result<Option<String>, RecordingError> {
     match file.storage {
         Storage::Mcap => {
@@ -212,18 +212,22 @@ pub fn for_each_message(
                 path: file.path.clone(),
                 message,
             })?;
-            for message in mcap::messages(&mapped[..scanned.sound_bytes]) {
-                match message {
-                    Ok(m) if !wanted.contains(&&*m.topic) => {}
-                    Ok(m) => {
-                        if !each(m) {
-                            return Ok(None);
-                        }
+            let mut outcome = Ok(scanned.damage);
+            mcap::messages(&mapped[..scanned.sound_bytes]).walk(|message| match message {
+                Ok(m) if !wanted.contains(&&*m.topic) => true,
+                Ok(m) => {
+                    let open = each(m);
+                    if !open {
+                        outcome = Ok(None);
                     }
-                    Err(e) => return Ok(Some(format!("unreadable record: {e}"))),
+                    open
                 }
-            }
-            Ok(scanned.damage)
+                Err(e) => {
+                    outcome = Ok(Some(format!("unreadable record: {e}")));
+                    false
+                }
+            });
+            outcome
         }
         Storage::Sqlite3 => {
             let mut stopped = false;
@@ -356,7 +360,7 @@ struct Replayer<'a> {
 
 impl Replayer<'_> {
     /// Handles one message; false when the pipeline has shut down or a stop was requested.
-    fn message(&mut self, file: &Path, wanted: &Wanted, message: RecordedMessage) -> bool {
+    fn message(&mut self, file: &Path, wanted: &Wanted, message: RecordedMessage<'_>) -> bool {
         if self.outlet.stopping() {
             return false;
         }
@@ -391,7 +395,7 @@ impl Replayer<'_> {
                 ),
                 None => {
                     // Wait for the first CameraInfo; an image it replaces is rejected.
-                    let replaced = self.waiting.replace(message.data);
+                    let replaced = self.waiting.replace(message.data.into_owned());
                     replaced.map(|_| {
                         Err(crate::sources::ros2::CdrError::Invalid(
                             "depth image with no CameraInfo before the next image".into(),

@@ -166,7 +166,7 @@ impl Sqlite3Bag {
     /// Hands the messages of `topics` to `each` in the order they were recorded, until it returns
     /// false. An error reading a row (a damaged database) ends the walk: `Err` with the reason,
     /// after every message before it was handed over.
-    pub fn for_each(&self, topics: &[&str], mut each: impl FnMut(RecordedMessage) -> bool) -> Result<(), String> {
+    pub fn for_each(&self, topics: &[&str], mut each: impl FnMut(RecordedMessage<'_>) -> bool) -> Result<(), String> {
         let fail = |e: rusqlite::Error| format!("{}: {e}", self.path.display());
         let wanted = vec!["?"; topics.len()].join(", ");
         let mut statement = self
@@ -192,7 +192,7 @@ impl Sqlite3Bag {
                 topic,
                 schema,
                 log_time: u64::try_from(timestamp).unwrap_or(0),
-                data: data.to_vec(),
+                data: std::borrow::Cow::Borrowed(data),
             };
             if !each(message) {
                 break;
