@@ -16,6 +16,8 @@ pub struct EncoderAlone {
     pub frames: usize,
     pub seconds: f64,
     pub frames_per_second: f64,
+    /// The process's CPU time over the run (ONNX Runtime's threads; nothing else runs then).
+    pub cpu_seconds: f64,
 }
 
 /// Encodes `frames` clouds (N_p random points in a unit ball: a dense network's cost does not
@@ -44,6 +46,7 @@ pub fn encoder_alone(bundle: &Bundle, model: &ModelSettings, frames: usize) -> R
     }
     let batches = frames.div_ceil(model.max_batch).max(1);
     let start = Instant::now();
+    let cpu_start = crate::cpu::process_ns();
     let results: Vec<Result<usize, RuntimeError>> = std::thread::scope(|scope| {
         let handles: Vec<_> = encoders
             .iter_mut()
@@ -66,9 +69,11 @@ pub fn encoder_alone(bundle: &Bundle, model: &ModelSettings, frames: usize) -> R
         encoded += result?;
     }
     let seconds = start.elapsed().as_secs_f64();
+    let cpu_seconds = crate::cpu::process_ns().saturating_sub(cpu_start) as f64 * 1e-9;
     Ok(EncoderAlone {
         frames: encoded,
         seconds,
         frames_per_second: encoded as f64 / seconds,
+        cpu_seconds,
     })
 }

@@ -12,6 +12,7 @@ pub mod bundle;
 pub mod cloud;
 pub mod config;
 mod contain;
+pub mod cpu;
 pub mod encoding;
 pub mod evaluate;
 pub mod pipeline;

@@ -156,6 +156,14 @@ pub struct Stats {
     stages: Mutex<BTreeMap<&'static str, Latencies>>,
     batches: AtomicU64,
     batched_frames: AtomicU64,
+    cpu: Mutex<BTreeMap<&'static str, CpuAccount>>,
+}
+
+/// CPU time one stage (or prepare step) spent, over all the items it handled.
+#[derive(Debug, Clone, Copy, Default, Serialize, PartialEq)]
+pub struct CpuAccount {
+    pub ns: u64,
+    pub items: u64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -164,6 +172,9 @@ pub struct Snapshot {
     pub stages: BTreeMap<String, LatencySummary>,
     pub batches: u64,
     pub mean_batch: f64,
+    /// CPU time per stage and prepare step (`decode`, `prepare.<step>`, `track`, `publish`), from
+    /// the threads' own clocks.
+    pub cpu: BTreeMap<String, CpuAccount>,
 }
 
 impl Stats {
@@ -179,6 +190,16 @@ impl Stats {
             .entry(stage)
             .or_default()
             .record(ms);
+    }
+
+    /// Adds CPU time to stages' accounts, each entry one item (a frame or a rejection).
+    pub fn add_cpu(&self, spent: &[(&'static str, u64)]) {
+        let mut cpu = self.cpu.lock().expect("stats lock");
+        for (stage, ns) in spent {
+            let account = cpu.entry(stage).or_default();
+            account.ns += ns;
+            account.items += 1;
+        }
     }
 
     pub fn record_batch(&self, frames: usize) {
@@ -218,9 +239,17 @@ impl Stats {
             .collect();
         let batches = self.batches.load(Ordering::Relaxed);
         let frames = self.batched_frames.load(Ordering::Relaxed);
+        let cpu = self
+            .cpu
+            .lock()
+            .expect("stats lock")
+            .iter()
+            .map(|(k, v)| (k.to_string(), *v))
+            .collect();
         Snapshot {
             streams,
             stages,
+            cpu,
             batches,
             mean_batch: if batches > 0 {
                 frames as f64 / batches as f64

@@ -1,6 +1,7 @@
 //! Arbitrary clouds, finite or not, through what every frame goes through: the outlet's
-//! plausibility filter, then the prepare stage (transform, crop, ground, outliers, largest
-//! cluster, sampling to N_p) with the filters switched on by the first byte. Farthest point
+//! plausibility filter, then the prepare stage (transform, crop, ground, voxel grid, outliers,
+//! largest cluster, sampling to N_p) with the filters switched on by the first byte (the voxel grid
+//! by the length: on when 6 or more bytes are left over after the points). Farthest point
 //! sampling is also checked against its plain loop: the bucketed one must choose the same points.
 #![no_main]
 
@@ -38,6 +39,7 @@ fuzz_target!(|data: &[u8]| {
         _ => OutlierMethod::Radius,
     };
     settings.cluster_m = if switches & 16 != 0 { 0.05 } else { 0.0 };
+    settings.voxel_grid_m = if body.len() % 12 >= 6 { 0.02 } else { 0.0 };
     settings.sampling = match (switches >> 5) & 3 {
         0 => Sampling::Farthest,
         1 => Sampling::Random,

@@ -79,6 +79,8 @@ pub struct RunSummary {
     pub wall: Duration,
     /// From the first frame's ingest to the last publish: what throughput is measured over.
     pub busy: Duration,
+    /// The CPU time of the whole process (every thread, ONNX Runtime's included) over `busy`.
+    pub busy_cpu: Duration,
     pub snapshot: Snapshot,
 }
 
@@ -304,6 +306,7 @@ pub fn run(
     loop {
         match publish_rx.recv_timeout(Duration::from_millis(50)) {
             Ok((mut output, tracked_at, ingested)) => {
+                let mut cpu = crate::cpu::ThreadLap::start();
                 let stream = match &mut output {
                     Output::State(state) => {
                         // Stamped here, so that `total_ms` is ingest to publish.
@@ -338,6 +341,7 @@ pub fn run(
                 if let Some(collect) = &options.collect {
                     let _ = collect.send(output);
                 }
+                stats.add_cpu(&[("publish", cpu.lap())]);
             }
             Err(crossbeam_channel::RecvTimeoutError::Timeout) => {}
             Err(crossbeam_channel::RecvTimeoutError::Disconnected) => break,
@@ -365,6 +369,7 @@ pub fn run(
     }
     flushed?;
     let last_publish = Instant::now();
+    let busy_cpu_end = crate::cpu::process_ns();
     for (stream, message, optional) in std::mem::take(&mut *source_errors.lock().unwrap_or_else(|e| e.into_inner())) {
         if !optional {
             return Err(PipelineError::Source { stream, message });
@@ -374,7 +379,11 @@ pub fn run(
     Ok(RunSummary {
         failed_sources,
         wall: started.elapsed(),
-        busy: first_ingest.get().map(|f| last_publish - *f).unwrap_or_default(),
+        busy: first_ingest.get().map(|f| last_publish - f.0).unwrap_or_default(),
+        busy_cpu: first_ingest
+            .get()
+            .map(|f| Duration::from_nanos(busy_cpu_end.saturating_sub(f.1)))
+            .unwrap_or_default(),
         snapshot: stats.snapshot(),
     })
 }

@@ -60,6 +60,59 @@ pub fn run_with_live_summary(
     Ok(summary)
 }
 
+/// Where a frame's CPU time went: each measured stage and prepare step, the rest of the process
+/// (ONNX Runtime's threads, the encode and batching threads, the channels), and against ONNX
+/// Runtime alone on the same bundle, what everything around the encoder costs.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CpuPerFrame {
+    /// Frames received (states and rejections): what every figure is divided by.
+    pub frames: u64,
+    /// Milliseconds of CPU per frame by stage, in pipeline order.
+    pub stages_ms: Vec<(String, f64)>,
+    /// The process's CPU per frame from the first ingest to the last publish, all threads.
+    pub process_ms: f64,
+    /// The process less the measured stages: ONNX Runtime, batching, channels, idle threads.
+    pub rest_ms: f64,
+    /// ONNX Runtime alone's CPU per frame (same bundle, batch, yaw copies and threads).
+    pub encoder_alone_ms: Option<f64>,
+    /// The process less ONNX Runtime alone: what the node spends around its model, and that as a
+    /// multiple of the encoder's own CPU.
+    pub around_encoder_ms: Option<f64>,
+    pub around_encoder_ratio: Option<f64>,
+}
+
+/// The CPU table of a run (and of ONNX Runtime alone, when measured).
+pub fn cpu_per_frame(summary: &RunSummary, baseline: Option<&EncoderAlone>) -> CpuPerFrame {
+    let s = &summary.snapshot;
+    let frames = s.streams.values().map(|c| c.received).sum::<u64>();
+    let per_frame = |ns: f64| ns * 1e-6 / frames.max(1) as f64;
+    let order = ["decode"]
+        .into_iter()
+        .chain(crate::prepare::STEPS)
+        .chain(["track", "publish"]);
+    let stages_ms: Vec<(String, f64)> = order
+        .filter_map(|stage| s.cpu.get(stage).map(|a| (stage.to_string(), per_frame(a.ns as f64))))
+        .collect();
+    let process_ms = per_frame(summary.busy_cpu.as_nanos() as f64);
+    let measured: f64 = stages_ms.iter().map(|(_, ms)| ms).sum();
+    let encoder_alone_ms = baseline
+        .filter(|b| b.frames > 0)
+        .map(|b| b.cpu_seconds * 1e3 / b.frames as f64);
+    let around_encoder_ms = encoder_alone_ms.map(|e| process_ms - e);
+    CpuPerFrame {
+        frames,
+        stages_ms,
+        process_ms,
+        rest_ms: process_ms - measured,
+        encoder_alone_ms,
+        around_encoder_ms,
+        around_encoder_ratio: encoder_alone_ms
+            .zip(around_encoder_ms)
+            .filter(|(e, _)| *e > 0.0)
+            .map(|(e, a)| a / e),
+    }
+}
+
 /// A run's report as `run` and `replay` print it: per stream counts, per stage latency, throughput,
 /// against ONNX Runtime alone when `baseline` is given, peak memory and the host's CPU steal; or
 /// the same as one JSON document (`json`).
@@ -78,6 +131,7 @@ pub fn print_report(
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as f64;
     // The share of the run's CPU time (all cores) that the host took: its latency tail's context.
     let steal_share = steal_s.map(|steal| steal / (summary.wall.as_secs_f64().max(1e-9) * cores));
+    let cpu = cpu_per_frame(summary, baseline.map(|(b, _)| b));
     if json {
         let report = serde_json::json!({
             "wall_s": summary.wall.as_secs_f64(),
@@ -91,6 +145,7 @@ pub fn print_report(
             "counters": s,
             "encoder_alone": baseline.map(|(b, _)| b),
             "throughput_vs_encoder_alone": baseline.map(|(b, _)| throughput / b.frames_per_second),
+            "cpu_per_frame": cpu,
         });
         println!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());
@@ -144,6 +199,7 @@ pub fn print_report(
             100.0 * throughput / b.frames_per_second
         );
     }
+    print_cpu(&cpu);
     if let Some(mib) = memory {
         println!("peak memory (VmHWM): {mib:.1} MiB");
     }
@@ -159,4 +215,23 @@ pub fn print_report(
         );
     }
     Ok(())
+}
+
+fn print_cpu(cpu: &CpuPerFrame) {
+    if cpu.frames == 0 {
+        return;
+    }
+    println!("CPU per frame (ms, each thread's own clock; {} frames)", cpu.frames);
+    for (stage, ms) in &cpu.stages_ms {
+        println!("  {stage:<18} {ms:>7.3}");
+    }
+    println!("  {:<18} {:>7.3}   the process less the above: ONNX Runtime, batching, channels", "rest", cpu.rest_ms);
+    println!("  {:<18} {:>7.3}   all threads, first ingest to last publish", "process", cpu.process_ms);
+    if let (Some(encoder), Some(around), Some(ratio)) =
+        (cpu.encoder_alone_ms, cpu.around_encoder_ms, cpu.around_encoder_ratio)
+    {
+        println!(
+            "  ONNX Runtime alone {encoder:>7.3}   -> around the encoder: {around:.3} ms a frame, {ratio:.2}x the encoder's CPU"
+        );
+    }
 }

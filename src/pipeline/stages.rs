@@ -10,7 +10,7 @@ use crossbeam_channel::{Receiver, Select, Sender};
 use super::work::*;
 use crate::config::Config;
 use crate::contain::contained;
-use crate::prepare::Preparer;
+use crate::prepare::{Preparer, STEPS};
 use crate::runtime::Encoder;
 use crate::sources::Ingest;
 use crate::state::{self, Output};
@@ -23,7 +23,7 @@ pub(super) fn ingest(
     mut channels: Vec<(bool, Receiver<Ingest>)>,
     out: Sender<Ticketed<Ingest>>,
     stop: &AtomicBool,
-    first: &std::sync::OnceLock<Instant>,
+    first: &std::sync::OnceLock<(Instant, u64)>,
 ) {
     let mut ticket = 0u64;
     while !channels.is_empty() {
@@ -43,7 +43,7 @@ pub(super) fn ingest(
         let index = operation.index();
         match operation.recv(&channels[index].1) {
             Ok(item) => {
-                first.get_or_init(Instant::now);
+                first.get_or_init(|| (Instant::now(), crate::cpu::process_ns()));
                 if out.send((ticket, item)).is_err() {
                     return;
                 }
@@ -62,9 +62,12 @@ pub(super) fn prepare(rx: Receiver<Ticketed<Ingest>>, tx: Sender<Ticketed<Work>>
             Ingest::Rejected(r) => Work::Rejected(r),
             Ingest::Frame(frame) => {
                 let start = Instant::now();
-                let result = contained("prepare", || preparer.prepare(&frame));
+                let mut cpu = [0; STEPS.len()];
+                let result = contained("prepare", || preparer.prepare_measured(&frame, &mut cpu));
                 let prepare_ms = ms_since(start);
                 stats.record("prepare", prepare_ms);
+                let spent: Vec<(&'static str, u64)> = STEPS.iter().copied().zip(cpu).collect();
+                stats.add_cpu(&spent);
                 match result {
                     Err(message) => Work::Rejected(origin_of(&frame).reject("prepare", message)),
                     Ok(Ok(prepared)) => Work::Frame(PreparedFrame {
@@ -231,6 +234,7 @@ pub(super) fn track(
         while let Some(done) = pending.remove(&next) {
             next += 1;
             let start = Instant::now();
+            let mut cpu = crate::cpu::ThreadLap::start();
             let (stream, ingested) = match &done {
                 Done::Encoded(f) => (f.origin.stream.clone(), f.origin.ingested),
                 Done::Rejected(r) => (r.stream.clone(), r.ingested),
@@ -294,6 +298,7 @@ pub(super) fn track(
                 }
             };
             stats.record("track", ms_since(start));
+            stats.add_cpu(&[("track", cpu.lap())]);
             if tx.send((output, Instant::now(), ingested)).is_err() {
                 return;
             }

@@ -22,7 +22,73 @@ pub fn transform(points: &mut [[f32; 3]], rotation: &Matrix3<f32>, translation: 
 
 /// Keeps the points inside [min_x, min_y, min_z, max_x, max_y, max_z].
 pub fn crop(points: &mut Vec<[f32; 3]>, bounds: &[f32; 6]) {
-    points.retain(|p| (0..3).all(|a| p[a] >= bounds[a] && p[a] <= bounds[a + 3]));
+    points.retain(|p| inside(p, bounds));
+}
+
+fn inside(p: &[f32; 3], bounds: &[f32; 6]) -> bool {
+    (0..3).all(|a| p[a] >= bounds[a] && p[a] <= bounds[a + 3])
+}
+
+/// x' = R (scale x) + t for every point of the sensor's cloud, keeping only those inside `crop`
+/// (when given): [`transform`] then [`crop`] in one pass, without a copy of the whole frame.
+pub fn transform_and_crop(
+    points: &[[f32; 3]],
+    scale: f32,
+    rotation: &Matrix3<f32>,
+    translation: &Vector3<f32>,
+    bounds: Option<&[f32; 6]>,
+) -> Vec<[f32; 3]> {
+    let rotation = rotation * scale;
+    let moved = points.iter().map(|p| {
+        let v = rotation * Vector3::from(*p) + translation;
+        [v.x, v.y, v.z]
+    });
+    match bounds {
+        Some(bounds) => moved.filter(|p| inside(p, bounds)).collect(),
+        None => moved.collect(),
+    }
+}
+
+/// A voxel grid (PCL's VoxelGrid): the points of each occupied cube of edge `edge` (metres) are
+/// replaced by their centroid, in the order the cubes are first met in the cloud. Surfaces sampled
+/// more densely than the edge keep their shape at a fraction of the points, so the steps after it,
+/// whose cost grows with the points, run on what the model's N_p points can resolve. Returns how
+/// many points were removed. Clouds whose cube coordinates would not fit in i64 are left as they
+/// are (the node drops points beyond 1e5 m before prepare).
+pub fn voxel_grid(points: &mut Vec<[f32; 3]>, edge: f32) -> usize {
+    if points.len() < 2 || !(edge > 0.0) {
+        return 0;
+    }
+    const LIMIT: f32 = (1u64 << 40) as f32;
+    if points.iter().flatten().any(|c| !((c / edge).abs() < LIMIT)) {
+        return 0;
+    }
+    let mut slot: CellMap = CellMap::default();
+    slot.reserve(points.len());
+    // Per cube: the sum of its points (relative to the first, to keep the rounding small) and how
+    // many there are.
+    let mut sums: Vec<([f32; 3], [f32; 3], u32)> = Vec::with_capacity(points.len());
+    for p in points.iter() {
+        let key = p.map(|c| (c / edge).floor() as i64);
+        let next = sums.len();
+        let at = *slot.entry(key).or_insert(next);
+        if at == next {
+            sums.push((*p, [0.0; 3], 1));
+        } else {
+            let (first, sum, n) = &mut sums[at];
+            for a in 0..3 {
+                sum[a] += p[a] - first[a];
+            }
+            *n += 1;
+        }
+    }
+    let before = points.len();
+    points.clear();
+    points.extend(
+        sums.iter()
+            .map(|(first, sum, n)| [0, 1, 2].map(|a| first[a] + sum[a] / *n as f32)),
+    );
+    before - points.len()
 }
 
 /// A plane n . x = d with |n| = 1 and n pointing up (n.z >= 0).
@@ -206,7 +272,6 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
     // (union-find) that hold a pair of points within `radius` of each other. The same clusters as
     // a neighbour search from every point, at a fraction of its cost on dense surfaces.
     let cell = radius / 3f32.sqrt();
-    let radius_squared = radius * radius;
     // Cell coordinates must stay far inside i64 (so that neighbours and box sizes cannot overflow):
     // a cloud reaching beyond 2^40 cells (10^10 m at a 1 cm radius) is left as it is. The node
     // drops points beyond 1e5 m before prepare; this guards the function itself (found by
@@ -215,75 +280,43 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
     if points.iter().flatten().any(|c| !((c / cell).abs() < LIMIT)) {
         return 0;
     }
-    let key = |p: &[f32; 3]| p.map(|c| (c / cell).floor() as i64);
-    let mut id: CellMap = CellMap::default();
-    let mut keys: Vec<[i64; 3]> = Vec::new();
-    let cell_of: Vec<usize> = points
-        .iter()
-        .map(|p| {
-            let k = key(p);
-            *id.entry(k).or_insert_with(|| {
-                keys.push(k);
-                keys.len() - 1
-            })
-        })
-        .collect();
-    // Cells numbered in grid order, so that the neighbour loops below walk the grid (and the
-    // points) in order rather than in the sensor's scan order.
-    let mut by_key: Vec<usize> = (0..keys.len()).collect();
-    by_key.sort_unstable_by_key(|&c| keys[c]);
-    let mut rank = vec![0usize; keys.len()];
-    for (r, &c) in by_key.iter().enumerate() {
-        rank[c] = r;
-    }
-    let keys: Vec<[i64; 3]> = by_key.iter().map(|&c| keys[c]).collect();
-    id.values_mut().for_each(|c| *c = rank[*c]);
-    // Each cell's points, in cloud order, as one array (cell a: member[start[a]..start[a + 1]]).
-    let mut start = vec![0usize; keys.len() + 1];
-    for &c in &cell_of {
-        start[rank[c] + 1] += 1;
-    }
-    for a in 0..keys.len() {
-        start[a + 1] += start[a];
-    }
-    let mut member = vec![0usize; points.len()];
-    let mut cursor = start.clone();
-    for (index, &c) in cell_of.iter().enumerate() {
-        member[cursor[rank[c]]] = index;
-        cursor[rank[c]] += 1;
-    }
-    let members = |a: usize| &member[start[a]..start[a + 1]];
-    // Neighbour lookups in a dense grid over the occupied box when it is small enough (a cropped
-    // frame), else in the hash map.
-    let low = keys
-        .iter()
-        .fold([i64::MAX; 3], |m, k| [0, 1, 2].map(|a| m[a].min(k[a])));
-    let high = keys
-        .iter()
-        .fold([i64::MIN; 3], |m, k| [0, 1, 2].map(|a| m[a].max(k[a])));
-    let dims = [0, 1, 2].map(|a| (high[a] - low[a] + 1) as u64);
-    let cells = dims.iter().try_fold(1u64, |total, d| total.checked_mul(*d));
-    let dense: Option<Vec<u32>> = cells.filter(|n| *n <= 1 << 22).map(|n| {
-        let mut grid = vec![u32::MAX; n as usize];
-        for (i, k) in keys.iter().enumerate() {
-            grid[(((k[0] - low[0]) as u64 * dims[1] + (k[1] - low[1]) as u64) * dims[2] + (k[2] - low[2]) as u64)
-                as usize] = i as u32;
-        }
-        grid
-    });
-    let lookup = |k: [i64; 3]| -> Option<usize> {
-        match &dense {
-            Some(grid) => {
-                if (0..3).any(|a| k[a] < low[a] || k[a] > high[a]) {
-                    return None;
-                }
-                let at = (((k[0] - low[0]) as u64 * dims[1] + (k[1] - low[1]) as u64) * dims[2]
-                    + (k[2] - low[2]) as u64) as usize;
-                (grid[at] != u32::MAX).then_some(grid[at] as usize)
-            }
-            None => id.get(&k).copied(),
-        }
+    let cells: Vec<[i64; 3]> = points.iter().map(|p| p.map(|c| (c / cell).floor() as i64)).collect();
+    let keep = largest_cluster(points, &cells, radius * radius);
+    let before = points.len();
+    let mut flags = keep.into_iter();
+    points.retain(|_| flags.next().unwrap_or(false));
+    before - points.len()
+}
+
+/// Bits of a packed cell key per axis: differences below 2^41 cells fit, with room for the two
+/// cells either side.
+const FIELD: u32 = 42;
+
+/// Which points belong to the largest cluster, given each point's cell and the grid's low corner.
+fn largest_cluster(points: &[[f32; 3]], cells: &[[i64; 3]], radius_squared: f32) -> Vec<bool> {
+    // Every cell's coordinates from the lowest corner (plus 2, so that a neighbour two cells lower
+    // is >= 0) packed into one number, FIELD bits an axis, x first: sorted keys are in grid order,
+    // and a neighbour's key is the cell's key plus the offset's.
+    let low = cells.iter().fold([i64::MAX; 3], |m, k| [0, 1, 2].map(|a| m[a].min(k[a] - 2)));
+    let pack = |k: &[i64; 3]| -> u128 {
+        ((k[0] - low[0]) as u128) << (2 * FIELD) | ((k[1] - low[1]) as u128) << FIELD | (k[2] - low[2]) as u128
     };
+    let offset = |d: [i64; 3]| -> i128 { ((d[0] as i128) << (2 * FIELD)) + ((d[1] as i128) << FIELD) + d[2] as i128 };
+    let shifted = |key: u128, d: i128| (key as i128 + d) as u128;
+    let z = |key: u128| (key & ((1 << FIELD) - 1)) as i64;
+    // The points sorted by cell: cell a holds order[start[a]..start[a + 1]], in cloud order.
+    let mut order: Vec<(u128, u32)> = cells.iter().enumerate().map(|(i, k)| (pack(k), i as u32)).collect();
+    order.sort_unstable();
+    let mut keys: Vec<u128> = Vec::new();
+    let mut start: Vec<usize> = Vec::new();
+    for (at, (key, _)) in order.iter().enumerate() {
+        if keys.last() != Some(key) {
+            keys.push(*key);
+            start.push(at);
+        }
+    }
+    start.push(order.len());
+    let members = |a: usize| order[start[a]..start[a + 1]].iter().map(|(_, i)| *i as usize);
     let mut parent: Vec<usize> = (0..keys.len()).collect();
     fn root(parent: &mut [usize], mut i: usize) -> usize {
         while parent[i] != i {
@@ -292,39 +325,55 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
         }
         i
     }
-    // Cells up to two apart along an axis can hold points within `radius` (gap (|d| - 1) * cell);
-    // the nearest first, which join most cells before the farther ones need a pair search.
-    let mut offsets = Vec::new();
-    for dx in -2i64..=2 {
-        for dy in -2i64..=2 {
-            for dz in -2i64..=2 {
-                let gap: i64 = [dx, dy, dz].iter().map(|d| (d.abs() - 1).max(0).pow(2)).sum();
-                if (dx, dy, dz) > (0, 0, 0) && gap <= 3 {
-                    offsets.push((gap, [dx, dy, dz]));
+    let join = |a: usize, b: usize, parent: &mut Vec<usize>| {
+        let (ra, rb) = (root(parent, a), root(parent, b));
+        if ra == rb {
+            return;
+        }
+        let joined = members(a).any(|i| {
+            let p = points[i];
+            members(b).any(|j| {
+                let q = points[j];
+                (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2) <= radius_squared
+            })
+        });
+        if joined {
+            parent[ra.max(rb)] = ra.min(rb);
+        }
+    };
+    // Cells up to two apart along each axis can hold points within `radius`: of the 5 x 5 x 5
+    // around a cell, the half after it in grid order, walked as rows (dx, dy) of cells dz apart.
+    // The nearest (up to one apart) first: they join most cells before the farther ones need a
+    // pair search. For one row, the cells' neighbours come in the same order as the cells, so one
+    // walk along the sorted keys finds them all.
+    let mut rows: Vec<([i64; 2], i64)> = Vec::new();
+    for reach in [1i64, 2] {
+        for dx in 0..=reach {
+            for dy in -reach..=reach {
+                if dx > 0 || dy >= 0 {
+                    rows.push(([dx, dy], reach));
                 }
             }
         }
     }
-    offsets.sort();
-    for (_, d) in &offsets {
+    for ([dx, dy], reach) in rows {
+        // The row (0, 0) is the cell's own column: only the cells above it. Rows the first pass
+        // walked need only the cells two apart in the second.
+        let (below, above) = if (dx, dy) == (0, 0) { (1, reach) } else { (-reach, reach) };
+        let walked = reach == 2 && dx.abs() <= 1 && dy.abs() <= 1;
+        let (first_offset, last_offset) = (offset([dx, dy, below]), offset([dx, dy, above]));
+        let mut b = 0;
         for a in 0..keys.len() {
-            let k = keys[a];
-            let Some(b) = lookup([k[0] + d[0], k[1] + d[1], k[2] + d[2]]) else {
-                continue;
-            };
-            let (ra, rb) = (root(&mut parent, a), root(&mut parent, b));
-            if ra == rb {
-                continue;
+            let (first, last) = (shifted(keys[a], first_offset), shifted(keys[a], last_offset));
+            while b < keys.len() && keys[b] < first {
+                b += 1;
             }
-            let joined = members(a).iter().any(|&i| {
-                let p = points[i];
-                members(b).iter().any(|&j| {
-                    let q = points[j];
-                    (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2) <= radius_squared
-                })
-            });
-            if joined {
-                parent[ra.max(rb)] = ra.min(rb);
+            let mut c = b;
+            while c < keys.len() && keys[c] <= last {
+                if !walked || (z(keys[c]) - z(keys[a])).abs() == 2 {
+                    join(a, c, &mut parent);
+                }
+                c += 1;
             }
         }
     }
@@ -333,8 +382,8 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
     let mut first = vec![usize::MAX; keys.len()];
     for a in 0..keys.len() {
         let r = root(&mut parent, a);
-        size[r] += members(a).len();
-        first[r] = first[r].min(members(a)[0]);
+        size[r] += start[a + 1] - start[a];
+        first[r] = first[r].min(order[start[a]].1 as usize);
     }
     let best = (0..keys.len())
         .max_by(|&a, &b| size[a].cmp(&size[b]).then(first[b].cmp(&first[a])))
@@ -342,11 +391,8 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
     let mut keep = vec![false; points.len()];
     for a in 0..keys.len() {
         if root(&mut parent, a) == best {
-            members(a).iter().for_each(|&i| keep[i] = true);
+            members(a).for_each(|i| keep[i] = true);
         }
     }
-    let before = points.len();
-    let mut flags = keep.into_iter();
-    points.retain(|_| flags.next().unwrap_or(false));
-    before - points.len()
+    keep
 }

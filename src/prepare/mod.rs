@@ -1,16 +1,21 @@
 //! Prepare: from a sensor's points to the model's input (N_p points in model units, centred).
 //!
 //! In order: unit conversion to metres, the sensor-to-gravity transform (or levelling on a
-//! RANSAC ground plane), region-of-interest crop, ground removal, outlier removal, then
-//! centring on the bounding-box centre, scaling by the bundle's model units per metre and
-//! subsampling to N_p. Every step is deterministic for the configured seed and the frame's
+//! RANSAC ground plane), region-of-interest crop, ground removal, then a voxel grid that reduces
+//! the cloud to one point per small cube before the steps whose cost grows with the points and
+//! their neighbours (outlier removal, the largest cluster, farthest point sampling), then
+//! subsampling to N_p, centring on the bounding-box centre and scaling by the bundle's model units
+//! per metre. Every step is deterministic for the configured seed and the frame's
 //! sequence number. A frame that ends with too few points is rejected with the reason.
 
 mod filters;
 mod sampling;
 mod settings;
 
-pub use filters::{crop, fit_ground, keep_largest_cluster, levelling, remove_outliers, remove_plane, transform, Plane};
+pub use filters::{
+    crop, fit_ground, keep_largest_cluster, levelling, remove_outliers, remove_plane, transform, transform_and_crop,
+    voxel_grid, Plane,
+};
 pub use sampling::{
     centre_and_scale, farthest_point_sampling, farthest_point_sampling_plain, random_sampling, subsample,
     voxel_sampling, PrepareError, Sampling,
@@ -22,6 +27,30 @@ use std::collections::HashMap;
 use nalgebra::{Matrix3, Vector3};
 
 use crate::cloud::Frame;
+use crate::cpu::ThreadLap;
+
+/// Prepare's steps in order, as the CPU table names them: `transform` is the
+/// unit conversion, the sensor pose and the crop (one pass over the sensor's points); `ground` the
+/// RANSAC plane, levelling and ground removal (the crop moves here when the ground is estimated);
+/// `reduce` the voxel grid; `sample` farthest point (or other) sampling, centring and scaling.
+pub const STEPS: [&str; 6] = [
+    "prepare.transform",
+    "prepare.ground",
+    "prepare.reduce",
+    "prepare.outliers",
+    "prepare.cluster",
+    "prepare.sample",
+];
+
+#[derive(Clone, Copy)]
+enum Step {
+    Transform,
+    Ground,
+    Reduce,
+    Outliers,
+    Cluster,
+    Sample,
+}
 
 /// One stream's sensor pose as its source sets it: either part may be left to `[prepare]`'s.
 #[derive(Debug, Clone, PartialEq)]
@@ -89,25 +118,68 @@ impl Preparer {
     }
 
     pub fn prepare(&self, frame: &Frame) -> Result<Prepared, PrepareError> {
+        self.prepare_measured(frame, &mut [0; STEPS.len()])
+    }
+
+    /// [`Preparer::prepare`], adding each step's CPU time (this thread's clock, nanoseconds) to
+    /// `cpu`, in the order of [`STEPS`].
+    pub fn prepare_measured(&self, frame: &Frame, cpu: &mut [u64; STEPS.len()]) -> Result<Prepared, PrepareError> {
         let s = &self.settings;
+        let mut clock = ThreadLap::start();
         let seed = s.seed ^ frame.sequence.wrapping_mul(0x9E37_79B9_7F4A_7C15);
         let to_metres = frame.unit.to_metres();
-        let mut points: Vec<[f32; 3]> = frame.cloud.points.iter().map(|p| p.map(|c| c * to_metres)).collect();
         let (rotation, translation) = self.per_stream.get(&frame.stream).unwrap_or(&self.sensor_to_gravity);
-        transform(&mut points, rotation, translation);
-        let ground = if s.auto_ground || s.remove_ground {
-            let plane = fit_ground(&points, s.ground_tolerance_m, s.ransac_iterations, seed);
-            if plane.is_none() && s.auto_ground {
-                return Err(PrepareError::NoGround);
+        let estimate_ground = s.auto_ground || s.remove_ground;
+        // One pass from the sensor's points to the cropped cloud in metres, unless the ground plane
+        // must be found first (it levels the cloud before the crop, and lies partly outside it).
+        let mut points = transform_and_crop(
+            &frame.cloud.points,
+            to_metres,
+            rotation,
+            translation,
+            s.crop.as_ref().filter(|_| !estimate_ground),
+        );
+        cpu[Step::Transform as usize] += clock.lap();
+        if estimate_ground {
+            self.ground(&mut points, seed)?;
+        }
+        cpu[Step::Ground as usize] += clock.lap();
+        if s.voxel_grid_m > 0.0 {
+            voxel_grid(&mut points, s.voxel_grid_m);
+        }
+        cpu[Step::Reduce as usize] += clock.lap();
+        remove_outliers(&mut points, &s.outliers);
+        cpu[Step::Outliers as usize] += clock.lap();
+        if s.cluster_m > 0.0 {
+            keep_largest_cluster(&mut points, s.cluster_m);
+        }
+        cpu[Step::Cluster as usize] += clock.lap();
+        let points_kept = points.len();
+        let chosen = subsample(&points, self.points, s.min_points, s.sampling, s.voxel_m, seed);
+        let prepared = chosen.map(|mut chosen| {
+            let centre_m = centre_and_scale(&mut chosen, self.model_units_per_metre);
+            Prepared {
+                points: chosen,
+                centre_m,
+                points_kept,
             }
-            plane
-        } else {
-            None
-        };
-        let ground = match (ground, s.auto_ground) {
+        });
+        cpu[Step::Sample as usize] += clock.lap();
+        prepared
+    }
+
+    /// The ground plane by RANSAC: levels the cloud on it (`auto_ground`), crops (after levelling)
+    /// and removes the points on it (`remove_ground`).
+    fn ground(&self, points: &mut Vec<[f32; 3]>, seed: u64) -> Result<(), PrepareError> {
+        let s = &self.settings;
+        let plane = fit_ground(points, s.ground_tolerance_m, s.ransac_iterations, seed);
+        if plane.is_none() && s.auto_ground {
+            return Err(PrepareError::NoGround);
+        }
+        let plane = match (plane, s.auto_ground) {
             (Some(plane), true) => {
                 let (rotation, translation) = levelling(&plane);
-                transform(&mut points, &rotation, &translation);
+                transform(points, &rotation, &translation);
                 Some(Plane {
                     normal: Vector3::z(),
                     offset: 0.0,
@@ -117,22 +189,11 @@ impl Preparer {
             (plane, _) => plane,
         };
         if let Some(bounds) = &s.crop {
-            crop(&mut points, bounds);
+            crop(points, bounds);
         }
-        if let (true, Some(plane)) = (s.remove_ground, ground) {
-            remove_plane(&mut points, &plane, s.ground_tolerance_m);
+        if let (true, Some(plane)) = (s.remove_ground, plane) {
+            remove_plane(points, &plane, s.ground_tolerance_m);
         }
-        remove_outliers(&mut points, &s.outliers);
-        if s.cluster_m > 0.0 {
-            keep_largest_cluster(&mut points, s.cluster_m);
-        }
-        let points_kept = points.len();
-        let mut chosen = subsample(&points, self.points, s.min_points, s.sampling, s.voxel_m, seed)?;
-        let centre_m = centre_and_scale(&mut chosen, self.model_units_per_metre);
-        Ok(Prepared {
-            points: chosen,
-            centre_m,
-            points_kept,
-        })
+        Ok(())
     }
 }

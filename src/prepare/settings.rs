@@ -21,6 +21,9 @@ pub struct PrepareSettings {
     pub ransac_iterations: usize,
     /// Region of interest in the gravity frame (metres): [min_x, min_y, min_z, max_x, max_y, max_z].
     pub crop: Option<[f32; 6]>,
+    /// Reduce the cropped cloud to the centroid of each occupied cube of this edge (metres) before
+    /// outliers, clusters and sampling, whose cost grows with the points. 0 keeps every point.
+    pub voxel_grid_m: f32,
     pub outliers: OutlierSettings,
     /// Keep only the largest cluster of points joined by neighbours closer than this (metres):
     /// drops what the crop leaves of the floor's noise and stray clutter. 0 keeps every point.
@@ -44,6 +47,7 @@ impl Default for PrepareSettings {
             ground_tolerance_m: 0.02,
             ransac_iterations: 100,
             crop: None,
+            voxel_grid_m: 0.0,
             outliers: OutlierSettings::default(),
             cluster_m: 0.0,
             sampling: Sampling::Farthest,
@@ -104,6 +108,9 @@ impl PrepareSettings {
         }
         if (p.auto_ground || p.remove_ground) && p.ransac_iterations == 0 {
             return Err("prepare.ransac_iterations must be at least 1 when the ground is estimated".into());
+        }
+        if !(p.voxel_grid_m >= 0.0 && p.voxel_grid_m.is_finite()) {
+            return Err(format!("prepare.voxel_grid_m = {} must be >= 0 (0: off)", p.voxel_grid_m));
         }
         if !(p.cluster_m >= 0.0 && p.cluster_m.is_finite()) {
             return Err(format!("prepare.cluster_m = {} must be >= 0 (0: off)", p.cluster_m));

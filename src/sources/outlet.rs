@@ -69,6 +69,8 @@ pub struct Outlet {
     /// Live outlets: silence longer than this, then an input, counts as a gap in the feed.
     feed_gap: Option<std::time::Duration>,
     last_input: Option<Instant>,
+    /// The source thread's CPU between frames: reading, decompressing and decoding them.
+    decode_cpu: crate::cpu::BetweenCalls,
 }
 
 impl Outlet {
@@ -91,6 +93,7 @@ impl Outlet {
             stop,
             feed_gap: None,
             last_input: None,
+            decode_cpu: Default::default(),
         };
         (outlet, receiver)
     }
@@ -150,6 +153,7 @@ impl Outlet {
                 .stream(&self.stream)
                 .add_non_finite(dropped_non_finite as u64);
         }
+        self.stats.add_cpu(&[("decode", self.decode_cpu.lap())]);
         self.send(Ingest::Frame(frame))
     }
 
@@ -164,6 +168,7 @@ impl Outlet {
             ingested: Instant::now(),
             ingest_unix_ns: unix_now_ns(),
         };
+        self.stats.add_cpu(&[("decode", self.decode_cpu.lap())]);
         self.send(Ingest::Rejected(rejection))
     }
 

@@ -4,7 +4,8 @@
 use gdvae_node::cloud::{Frame, PointCloud, Unit};
 use gdvae_node::config::{OutlierMethod, OutlierSettings, PrepareSettings};
 use gdvae_node::prepare::{
-    crop, fit_ground, levelling, remove_outliers, remove_plane, transform, PrepareError, Preparer,
+    crop, fit_ground, levelling, remove_outliers, remove_plane, transform, transform_and_crop, voxel_grid, PrepareError,
+    Preparer,
 };
 use nalgebra::{Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
@@ -78,6 +79,78 @@ fn no_ground_in_a_cloud_without_one() {
         .collect();
     assert!(fit_ground(&ball, 0.005, 100, 1).is_none());
     assert!(fit_ground(&[], 0.01, 10, 1).is_none());
+}
+
+#[test]
+fn transform_and_crop_in_one_pass_is_transform_then_crop() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let points: Vec<[f32; 3]> = (0..2000)
+        .map(|_| std::array::from_fn(|_| rng.random_range(-3000.0..3000.0)))
+        .collect();
+    let rotation = Rotation3::from_euler_angles(0.3, -0.2, 1.1).into_inner();
+    let translation = Vector3::new(0.5, -0.2, 1.3);
+    let bounds = [-1.0, -1.5, 0.0, 1.0, 1.5, 2.0];
+    let mut expected: Vec<[f32; 3]> = points.iter().map(|p| p.map(|c| c * 0.001)).collect();
+    transform(&mut expected, &rotation, &translation);
+    let all = transform_and_crop(&points, 0.001, &rotation, &translation, None);
+    crop(&mut expected, &bounds);
+    let cropped = transform_and_crop(&points, 0.001, &rotation, &translation, Some(&bounds));
+    assert_eq!(all.len(), points.len());
+    assert!(!cropped.is_empty() && cropped.len() < points.len() / 2);
+    assert_eq!(cropped.len(), expected.len());
+    for (a, b) in cropped.iter().zip(&expected) {
+        assert!((0..3).all(|i| (a[i] - b[i]).abs() < 1e-5), "{a:?} != {b:?}");
+    }
+}
+
+#[test]
+fn a_voxel_grid_keeps_one_centroid_per_occupied_cube_in_the_order_first_met() {
+    let mut points = vec![
+        [0.01, 0.01, 0.01],
+        [0.25, 0.05, 0.05], // its own cube
+        [0.03, 0.03, 0.05],
+        [-0.01, 0.02, 0.02], // the cube below zero along x
+        [0.05, 0.07, 0.03],
+    ];
+    let removed = voxel_grid(&mut points, 0.1);
+    assert_eq!(removed, 2);
+    let expected = [[0.03, 0.036_666_67, 0.03], [0.25, 0.05, 0.05], [-0.01, 0.02, 0.02]];
+    assert_eq!(points.len(), expected.len());
+    for (a, b) in points.iter().zip(&expected) {
+        assert!((0..3).all(|i| (a[i] - b[i]).abs() < 1e-6), "{a:?} != {b:?}");
+    }
+    // Points already further apart than the edge are kept as they are; 0 is off.
+    let mut sparse: Vec<[f32; 3]> = (0..50).map(|i| [i as f32 * 0.1 + 0.05, 0.05, 0.05]).collect();
+    let before = sparse.clone();
+    assert_eq!(voxel_grid(&mut sparse, 0.1), 0);
+    assert_eq!(sparse, before);
+    assert_eq!(voxel_grid(&mut sparse, 0.0), 0);
+    // Coordinates beyond what a grid can index: the cloud is left as it is.
+    let mut far = vec![[0.0, 0.0, 0.0], [0.001, 0.0, 0.0], [3e38, 0.0, 0.0]];
+    assert_eq!(voxel_grid(&mut far, 0.01), 0);
+    assert_eq!(far.len(), 3);
+}
+
+#[test]
+fn a_dense_surface_on_a_voxel_grid_keeps_its_extent_with_far_fewer_points() {
+    // A 1 m x 0.5 m sheet sampled every 2.5 mm (80,000 points), reduced on a 3 cm grid.
+    let mut sheet: Vec<[f32; 3]> = Vec::new();
+    for i in 0..400 {
+        for j in 0..200 {
+            sheet.push([i as f32 * 0.0025, j as f32 * 0.0025, 0.3]);
+        }
+    }
+    let mut reduced = sheet.clone();
+    voxel_grid(&mut reduced, 0.03);
+    // ceil(1 / 0.03) x ceil(0.5 / 0.03) cubes.
+    assert_eq!(reduced.len(), 34 * 17);
+    let extent = |c: &[[f32; 3]], a: usize| {
+        let (lo, hi) = c.iter().fold((f32::MAX, f32::MIN), |(lo, hi), p| (lo.min(p[a]), hi.max(p[a])));
+        hi - lo
+    };
+    for axis in 0..2 {
+        assert!((extent(&sheet, axis) - extent(&reduced, axis)).abs() < 0.03);
+    }
 }
 
 #[test]
