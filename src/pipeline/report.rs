@@ -225,8 +225,14 @@ fn print_cpu(cpu: &CpuPerFrame) {
     for (stage, ms) in &cpu.stages_ms {
         println!("  {stage:<18} {ms:>7.3}");
     }
-    println!("  {:<18} {:>7.3}   the process less the above: ONNX Runtime, batching, channels", "rest", cpu.rest_ms);
-    println!("  {:<18} {:>7.3}   all threads, first ingest to last publish", "process", cpu.process_ms);
+    println!(
+        "  {:<18} {:>7.3}   the process less the above: ONNX Runtime, batching, channels",
+        "rest", cpu.rest_ms
+    );
+    println!(
+        "  {:<18} {:>7.3}   all threads, first ingest to last publish",
+        "process", cpu.process_ms
+    );
     if let (Some(encoder), Some(around), Some(ratio)) =
         (cpu.encoder_alone_ms, cpu.around_encoder_ms, cpu.around_encoder_ratio)
     {

@@ -49,6 +49,13 @@ pub fn transform_and_crop(
     }
 }
 
+/// `x.floor() as i64` for the finite |x| < 2^40 the grids allow, without a call into libm (which
+/// `floor` is on x86-64 without SSE4.1).
+fn floor(x: f32) -> i64 {
+    let t = x as i64;
+    t - ((t as f32) > x) as i64
+}
+
 /// A voxel grid (PCL's VoxelGrid): the points of each occupied cube of edge `edge` (metres) are
 /// replaced by their centroid, in the order the cubes are first met in the cloud. Surfaces sampled
 /// more densely than the edge keep their shape at a fraction of the points, so the steps after it,
@@ -69,7 +76,7 @@ pub fn voxel_grid(points: &mut Vec<[f32; 3]>, edge: f32) -> usize {
     // many there are.
     let mut sums: Vec<([f32; 3], [f32; 3], u32)> = Vec::with_capacity(points.len());
     for p in points.iter() {
-        let key = p.map(|c| (c / edge).floor() as i64);
+        let key = p.map(|c| floor(c / edge));
         let next = sums.len();
         let at = *slot.entry(key).or_insert(next);
         if at == next {
@@ -280,7 +287,7 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
     if points.iter().flatten().any(|c| !((c / cell).abs() < LIMIT)) {
         return 0;
     }
-    let cells: Vec<[i64; 3]> = points.iter().map(|p| p.map(|c| (c / cell).floor() as i64)).collect();
+    let cells: Vec<[i64; 3]> = points.iter().map(|p| p.map(|c| floor(c / cell))).collect();
     let keep = largest_cluster(points, &cells, radius * radius);
     let before = points.len();
     let mut flags = keep.into_iter();
@@ -297,7 +304,9 @@ fn largest_cluster(points: &[[f32; 3]], cells: &[[i64; 3]], radius_squared: f32)
     // Every cell's coordinates from the lowest corner (plus 2, so that a neighbour two cells lower
     // is >= 0) packed into one number, FIELD bits an axis, x first: sorted keys are in grid order,
     // and a neighbour's key is the cell's key plus the offset's.
-    let low = cells.iter().fold([i64::MAX; 3], |m, k| [0, 1, 2].map(|a| m[a].min(k[a] - 2)));
+    let low = cells
+        .iter()
+        .fold([i64::MAX; 3], |m, k| [0, 1, 2].map(|a| m[a].min(k[a] - 2)));
     let pack = |k: &[i64; 3]| -> u128 {
         ((k[0] - low[0]) as u128) << (2 * FIELD) | ((k[1] - low[1]) as u128) << FIELD | (k[2] - low[2]) as u128
     };
@@ -325,21 +334,15 @@ fn largest_cluster(points: &[[f32; 3]], cells: &[[i64; 3]], radius_squared: f32)
         }
         i
     }
-    let join = |a: usize, b: usize, parent: &mut Vec<usize>| {
-        let (ra, rb) = (root(parent, a), root(parent, b));
-        if ra == rb {
-            return;
-        }
-        let joined = members(a).any(|i| {
+    // Whether cells a and b hold a pair of points within `radius`.
+    let near = |a: usize, b: usize| {
+        members(a).any(|i| {
             let p = points[i];
             members(b).any(|j| {
                 let q = points[j];
                 (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2) <= radius_squared
             })
-        });
-        if joined {
-            parent[ra.max(rb)] = ra.min(rb);
-        }
+        })
     };
     // Cells up to two apart along each axis can hold points within `radius`: of the 5 x 5 x 5
     // around a cell, the half after it in grid order, walked as rows (dx, dy) of cells dz apart.
@@ -359,19 +362,31 @@ fn largest_cluster(points: &[[f32; 3]], cells: &[[i64; 3]], radius_squared: f32)
     for ([dx, dy], reach) in rows {
         // The row (0, 0) is the cell's own column: only the cells above it. Rows the first pass
         // walked need only the cells two apart in the second.
-        let (below, above) = if (dx, dy) == (0, 0) { (1, reach) } else { (-reach, reach) };
+        let (below, above) = if (dx, dy) == (0, 0) {
+            (1, reach)
+        } else {
+            (-reach, reach)
+        };
         let walked = reach == 2 && dx.abs() <= 1 && dy.abs() <= 1;
         let (first_offset, last_offset) = (offset([dx, dy, below]), offset([dx, dy, above]));
         let mut b = 0;
         for a in 0..keys.len() {
             let (first, last) = (shifted(keys[a], first_offset), shifted(keys[a], last_offset));
+            let mut ra = usize::MAX;
             while b < keys.len() && keys[b] < first {
                 b += 1;
             }
             let mut c = b;
             while c < keys.len() && keys[c] <= last {
                 if !walked || (z(keys[c]) - z(keys[a])).abs() == 2 {
-                    join(a, c, &mut parent);
+                    if ra == usize::MAX {
+                        ra = root(&mut parent, a);
+                    }
+                    let rc = root(&mut parent, c);
+                    if ra != rc && near(a, c) {
+                        parent[ra.max(rc)] = ra.min(rc);
+                        ra = ra.min(rc);
+                    }
                 }
                 c += 1;
             }

@@ -139,10 +139,24 @@ impl Buckets {
                 let d = (x - c[0]) * (x - c[0]) + (y - c[1]) * (y - c[1]) + (z - c[2]) * (z - c[2]);
                 *n = n.min(d);
             }
-            self.farthest[b] = farthest(nearest.iter().copied().zip(self.index[start..end].iter().copied()));
+            self.farthest[b] = farthest_in_bucket(nearest, &self.index[start..end]);
         }
         farthest(self.farthest.iter().copied()).1 as usize
     }
+}
+
+/// [`farthest`] of one bucket's points, in two passes that vectorize: the largest distance
+/// (distances are >= 0, so their bits order as they do), then the lowest cloud index holding it.
+fn farthest_in_bucket(nearest: &[f32], index: &[u32]) -> (f32, u32) {
+    let largest = f32::from_bits(nearest.iter().map(|n| n.to_bits()).max().unwrap_or(0));
+    let at = nearest
+        .iter()
+        .zip(index)
+        .filter(|(n, _)| **n == largest)
+        .map(|(_, i)| *i)
+        .min()
+        .unwrap_or(u32::MAX);
+    (largest, at)
 }
 
 /// The largest distance of (distance, cloud index) pairs; of equal ones, the lowest index (the

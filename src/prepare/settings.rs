@@ -110,7 +110,10 @@ impl PrepareSettings {
             return Err("prepare.ransac_iterations must be at least 1 when the ground is estimated".into());
         }
         if !(p.voxel_grid_m >= 0.0 && p.voxel_grid_m.is_finite()) {
-            return Err(format!("prepare.voxel_grid_m = {} must be >= 0 (0: off)", p.voxel_grid_m));
+            return Err(format!(
+                "prepare.voxel_grid_m = {} must be >= 0 (0: off)",
+                p.voxel_grid_m
+            ));
         }
         if !(p.cluster_m >= 0.0 && p.cluster_m.is_finite()) {
             return Err(format!("prepare.cluster_m = {} must be >= 0 (0: off)", p.cluster_m));

@@ -206,35 +206,26 @@ pub fn decode_point_cloud2(payload: &[u8], max_points: usize) -> Result<DecodedC
         )));
     }
     let mut decoded = Vec::with_capacity(points);
-    let mut dropped = 0;
-    let mut keep = |p: [f32; 3]| {
-        if p.iter().all(|c| c.is_finite()) {
-            decoded.push(p);
-        } else {
-            dropped += 1;
-        }
-    };
-    if !big_endian && [x, y, z].iter().all(|(_, datatype)| *datatype == 7) {
-        // The common layout (little-endian float32 x, y, z): straight from the message's bytes,
-        // row by row, with no per-value dispatch.
-        let [x, y, z] = [x.0, y.0, z.0];
-        let read = |point: &[u8], o: usize| f32::from_le_bytes([point[o], point[o + 1], point[o + 2], point[o + 3]]);
-        for row in 0..height {
-            let row = &data[row * row_step..row * row_step + width * point_step];
-            for point in row.chunks_exact(point_step) {
-                keep([read(point, x), read(point, y), read(point, z)]);
-            }
-        }
-    } else {
-        let value = |point: &[u8], (offset, datatype): (usize, u8)| read_scalar(&point[offset..], datatype, big_endian);
-        for row in 0..height {
-            for column in 0..width {
-                let start = row * row_step + column * point_step;
-                let point = &data[start..start + point_step];
-                keep([value(point, x) as f32, value(point, y) as f32, value(point, z) as f32]);
+    // The common layout (little-endian float32 x, y, z) is read straight from the message's
+    // bytes, with no per-value dispatch; rows and points are walked as slices of the data.
+    let fast = !big_endian && [x, y, z].iter().all(|(_, datatype)| *datatype == 7);
+    let float = |point: &[u8], o: usize| f32::from_le_bytes(point[o..o + 4].try_into().expect("4 bytes"));
+    let value =
+        |point: &[u8], (offset, datatype): (usize, u8)| read_scalar(&point[offset..], datatype, big_endian) as f32;
+    for row in 0..height {
+        let row = &data[row * row_step..row * row_step + width * point_step];
+        for point in row.chunks_exact(point_step) {
+            let p = if fast {
+                [float(point, x.0), float(point, y.0), float(point, z.0)]
+            } else {
+                [value(point, x), value(point, y), value(point, z)]
+            };
+            if p.iter().all(|c| c.is_finite()) {
+                decoded.push(p);
             }
         }
     }
+    let dropped = points - decoded.len();
     Ok(DecodedCloud {
         header,
         points: decoded,

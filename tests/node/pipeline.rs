@@ -91,15 +91,24 @@ fn replaying_the_sample_publishes_every_frame_in_order_on_zenoh() {
     // process as a whole spent at least what they did.
     let cpu = &summary.snapshot.cpu;
     let mut stages_ns = 0;
-    for stage in gdvae_node::prepare::STEPS.into_iter().chain(["decode", "track", "publish"]) {
-        let account = cpu.get(stage).unwrap_or_else(|| panic!("no CPU account '{stage}': {cpu:?}"));
+    for stage in gdvae_node::prepare::STEPS
+        .into_iter()
+        .chain(["decode", "track", "publish"])
+    {
+        let account = cpu
+            .get(stage)
+            .unwrap_or_else(|| panic!("no CPU account '{stage}': {cpu:?}"));
         assert_eq!(account.items, 150, "{stage}");
         stages_ns += account.ns;
     }
     for stage in ["decode", "prepare.transform", "prepare.cluster", "prepare.sample"] {
         assert!(cpu[stage].ns > 0, "{stage}: {cpu:?}");
     }
-    assert!(summary.busy_cpu.as_nanos() as f64 > 0.9 * stages_ns as f64, "{:?} {cpu:?}", summary.busy_cpu);
+    assert!(
+        summary.busy_cpu.as_nanos() as f64 > 0.9 * stages_ns as f64,
+        "{:?} {cpu:?}",
+        summary.busy_cpu
+    );
 
     let mut states = Vec::new();
     assert!(

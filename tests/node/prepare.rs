@@ -4,8 +4,8 @@
 use gdvae_node::cloud::{Frame, PointCloud, Unit};
 use gdvae_node::config::{OutlierMethod, OutlierSettings, PrepareSettings};
 use gdvae_node::prepare::{
-    crop, fit_ground, levelling, remove_outliers, remove_plane, transform, transform_and_crop, voxel_grid, PrepareError,
-    Preparer,
+    crop, fit_ground, levelling, remove_outliers, remove_plane, transform, transform_and_crop, voxel_grid,
+    PrepareError, Preparer,
 };
 use nalgebra::{Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
@@ -145,7 +145,9 @@ fn a_dense_surface_on_a_voxel_grid_keeps_its_extent_with_far_fewer_points() {
     // ceil(1 / 0.03) x ceil(0.5 / 0.03) cubes.
     assert_eq!(reduced.len(), 34 * 17);
     let extent = |c: &[[f32; 3]], a: usize| {
-        let (lo, hi) = c.iter().fold((f32::MAX, f32::MIN), |(lo, hi), p| (lo.min(p[a]), hi.max(p[a])));
+        let (lo, hi) = c
+            .iter()
+            .fold((f32::MAX, f32::MIN), |(lo, hi), p| (lo.min(p[a]), hi.max(p[a])));
         hi - lo
     };
     for axis in 0..2 {
