@@ -4,11 +4,13 @@ for the same job with the usual tools, measured on the same recordings, bundle, 
     python bench/python_reference.py REC... [--config config/replay.toml] [--batch 8] [--threads 2]
 
 Per frame: read the MCAP (mcap), decode the PointCloud2 x/y/z fields (numpy), sensor-to-gravity
-transform and crop (numpy), the largest Euclidean cluster (scipy's cKDTree + connected
-components: the same clusters as the node's `cluster_m`), farthest point sampling to N_p (numpy,
-vectorised), bounding-box centring and scaling; then onnxruntime on batches of `--batch`. No
-tracking and no publishing: a lower bound on what the node's job costs in Python. Prints frames/s
-from the first read to the last encoding, and the time per step.
+transform and crop (numpy), the voxel grid's centroids (numpy, the node's `voxel_grid_m`), the
+largest Euclidean cluster (scipy's cKDTree + connected components: the same clusters as the node's
+`cluster_m`), farthest point sampling to N_p (numpy, vectorised), bounding-box centring and
+scaling; then onnxruntime on batches of `--batch` frames, each frame turned into the node's
+`yaw_copies` (the encoder sees batch x copies clouds, as the node's does). No fusion of the copies,
+no tracking and no publishing: a lower bound on what the node's job costs in Python. Prints
+frames/s from the first read to the last encoding, and the time per step.
 """
 
 import argparse
@@ -60,6 +62,21 @@ def decode_xyz(data):
     return xyz[np.isfinite(xyz).all(-1)]
 
 
+def voxel_grid(points, edge):
+    """The centroid of the points in each occupied cube of side `edge`, cubes in the order first met."""
+    keys = np.floor(points / edge).astype(np.int64)
+    _, first, inverse, counts = np.unique(keys, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    sums = np.zeros((len(first), 3), dtype=np.float64)
+    np.add.at(sums, inverse.reshape(-1), points)
+    centroids = (sums / counts[:, None]).astype(np.float32)
+    return centroids[np.argsort(first)]
+
+
+def turned(cloud, angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return cloud @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float32).T
+
+
 def largest_cluster(points, radius):
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -98,16 +115,19 @@ def main():
     translation = np.array(prepare["sensor_to_gravity_translation"], dtype=np.float32)
     low, high = np.array(prepare["crop"][:3]), np.array(prepare["crop"][3:])
     cluster_m = prepare.get("cluster_m", 0.0)
+    voxel_grid_m = prepare.get("voxel_grid_m", 0.0)
+    copies = config.get("model", {}).get("yaw_copies", 4)  # default.toml's default
+    angles = [k * 2 * np.pi / copies for k in range(copies)]
     options = ort.SessionOptions()
     options.intra_op_num_threads, options.inter_op_num_threads = args.threads, 1
     session = ort.InferenceSession(str(bundle / "encoder.onnx"), options, providers=["CPUExecutionProvider"])
     rng = np.random.default_rng(0)
-    steps = dict.fromkeys(["read", "decode", "transform_crop", "cluster", "sampling", "encode"], 0.0)
+    steps = dict.fromkeys(["read", "decode", "transform_crop", "voxel_grid", "cluster", "sampling", "encode"], 0.0)
     batch, frames = [], 0
 
     def encode():
         started = time.perf_counter()
-        session.run(None, {"points": np.stack(batch)})
+        session.run(None, {"points": np.stack([turned(cloud, a) for cloud in batch for a in angles])})
         steps["encode"] += time.perf_counter() - started
         batch.clear()
 
@@ -123,6 +143,9 @@ def main():
                 points = points @ rotation.T + translation
                 points = points[((points >= low) & (points <= high)).all(-1)]
                 t2 = time.perf_counter()
+                if voxel_grid_m > 0:
+                    points = voxel_grid(points, voxel_grid_m)
+                t2v = time.perf_counter()
                 if cluster_m > 0:
                     points = largest_cluster(points, cluster_m)
                 t3 = time.perf_counter()
@@ -133,7 +156,8 @@ def main():
                 t4 = time.perf_counter()
                 steps["decode"] += t1 - t0
                 steps["transform_crop"] += t2 - t1
-                steps["cluster"] += t3 - t2
+                steps["voxel_grid"] += t2v - t2
+                steps["cluster"] += t3 - t2v
                 steps["sampling"] += t4 - t3
                 frames += 1
                 if len(batch) == args.batch:
@@ -145,7 +169,7 @@ def main():
     print(json.dumps({
         "frames": frames, "seconds": elapsed, "frames_per_second": frames / elapsed,
         "ms_per_frame": {k: 1000 * v / frames for k, v in steps.items()},
-        "batch": args.batch, "threads": args.threads,
+        "batch": args.batch, "threads": args.threads, "yaw_copies": copies,
     }, indent=1))
 
 

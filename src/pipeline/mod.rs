@@ -303,6 +303,7 @@ pub fn run(
         &config.zenoh,
         session.as_ref(),
     );
+    let mut last_publish = (Instant::now(), crate::cpu::process_ns());
     loop {
         match publish_rx.recv_timeout(Duration::from_millis(50)) {
             Ok((mut output, tracked_at, ingested)) => {
@@ -342,6 +343,9 @@ pub fn run(
                     let _ = collect.send(output);
                 }
                 stats.add_cpu(&[("publish", cpu.lap())]);
+                // The end of the busy span: when the last output went out, not when the stages'
+                // threads have noticed the end (their 50 ms timeouts would count as work).
+                last_publish = (Instant::now(), crate::cpu::process_ns());
             }
             Err(crossbeam_channel::RecvTimeoutError::Timeout) => {}
             Err(crossbeam_channel::RecvTimeoutError::Disconnected) => break,
@@ -368,8 +372,6 @@ pub fn run(
         )));
     }
     flushed?;
-    let last_publish = Instant::now();
-    let busy_cpu_end = crate::cpu::process_ns();
     for (stream, message, optional) in std::mem::take(&mut *source_errors.lock().unwrap_or_else(|e| e.into_inner())) {
         if !optional {
             return Err(PipelineError::Source { stream, message });
@@ -379,10 +381,13 @@ pub fn run(
     Ok(RunSummary {
         failed_sources,
         wall: started.elapsed(),
-        busy: first_ingest.get().map(|f| last_publish - f.0).unwrap_or_default(),
+        busy: first_ingest
+            .get()
+            .map(|f| last_publish.0.saturating_duration_since(f.0))
+            .unwrap_or_default(),
         busy_cpu: first_ingest
             .get()
-            .map(|f| Duration::from_nanos(busy_cpu_end.saturating_sub(f.1)))
+            .map(|f| Duration::from_nanos(last_publish.1.saturating_sub(f.1)))
             .unwrap_or_default(),
         snapshot: stats.snapshot(),
     })
