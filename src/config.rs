@@ -139,6 +139,9 @@ impl Config {
             }
         };
         resolve(&mut self.model.bundle);
+        if let Some(p) = self.zenoh.config.as_mut() {
+            resolve(p);
+        }
         if let Some(p) = self.model.onnxruntime.as_mut() {
             resolve(p);
         }
@@ -193,15 +196,7 @@ impl Config {
         self.prepare.validate()?;
         self.track.validate()?;
         self.publish.validate()?;
-        if !matches!(self.zenoh.mode.as_str(), "peer" | "client") {
-            return Err(format!(
-                "zenoh.mode '{}' must be \"peer\" or \"client\"",
-                self.zenoh.mode
-            ));
-        }
-        if self.zenoh.mode == "client" && self.zenoh.connect.is_empty() {
-            return Err("zenoh.mode = \"client\" needs a router in zenoh.connect".into());
-        }
+        self.zenoh.validate()?;
         let mut streams = std::collections::HashSet::new();
         for (index, s) in self.sources.iter().enumerate() {
             let at = format!("source[{index}] ('{}')", s.stream);

@@ -357,11 +357,22 @@ fn check_config(path: &Path) -> Result<()> {
     if !unusable.is_empty() {
         bail!("source(s) {} cannot start; `run` would fail", unusable.join(", "));
     }
+    let zenoh = gdvae_node::zenoh_session::session_config(&config.zenoh)?;
+    let plan = gdvae_node::zenoh_session::plan(&zenoh);
+    if let Some(file) = config.zenoh.file() {
+        println!("zenoh configuration file: {}", file.display());
+    }
+    for endpoint in gdvae_node::zenoh_session::open_to_the_network(&plan) {
+        println!(
+            "warning: zenoh listens on {endpoint} without TLS: anyone who can reach it can publish into \
+             the node's inputs, query its status and subscribe to its states (README \"Who can reach the node\")"
+        );
+    }
     if config.publish.zenoh {
         println!(
             "publishing on {} (zenoh {}, {})",
             config.state_key("<stream>"),
-            config.zenoh.mode,
+            plan.mode,
             match config.publish.format {
                 Format::Json => "JSON",
                 Format::Cbor => "CBOR",
@@ -555,9 +566,14 @@ fn run_pipeline(config: &Config, options: RunOptions, live_summary: bool) -> Res
     let session =
         if config.publish.zenoh || config.publish.ros2.enabled || config.sources.iter().any(|s| s.is_subscription()) {
             let session = open_session(&config.zenoh)?;
+            if let Some(file) = config.zenoh.file() {
+                log::info!("zenoh configuration from {}", file.display());
+            }
             log::info!(
                 "zenoh {} session {} up; publishing on {}",
-                config.zenoh.mode,
+                gdvae_node::zenoh_session::session_config(&config.zenoh)
+                    .map(|zc| gdvae_node::zenoh_session::plan(&zc).mode)
+                    .unwrap_or_default(),
                 session.zid(),
                 config.state_key("*")
             );

@@ -3,6 +3,8 @@
 //! that talks on zenoh (sources, sinks, the status queryable), so none of them needs the whole
 //! config.
 
+use std::path::{Path, PathBuf};
+
 use serde::{Deserialize, Serialize};
 use zenoh::{Session, Wait};
 
@@ -29,50 +31,145 @@ impl Default for NodeSettings {
     }
 }
 
-#[derive(Debug, Clone, Deserialize, Serialize)]
+/// `[zenoh]`: the node's session. A zenoh configuration file (`config`, or the file
+/// `ZENOH_SESSION_CONFIG_URI` names, as rmw_zenoh deployments set it) gives every zenoh setting:
+/// TLS and mutual TLS, user/password authentication, access control. The four keys here, where
+/// set, are applied on top of it; without a file the session is an embedded peer that scouts by
+/// multicast.
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ZenohSettings {
+    /// A zenoh configuration file (JSON5; relative to this config's folder).
+    pub config: Option<PathBuf>,
     /// "peer" (an embedded peer, no router needed) or "client" (needs a router in `connect`).
-    pub mode: String,
-    /// Endpoints to listen on, e.g. "tcp/0.0.0.0:7447".
-    pub listen: Vec<String>,
-    /// Routers or peers to connect to, e.g. "tcp/192.168.1.10:7447".
-    pub connect: Vec<String>,
-    /// Find peers on the LAN by UDP multicast.
-    pub multicast_scouting: bool,
+    pub mode: Option<String>,
+    /// Endpoints to listen on, e.g. "tcp/0.0.0.0:7447" or "tls/0.0.0.0:7447".
+    pub listen: Option<Vec<String>>,
+    /// Routers or peers to connect to, e.g. "tls/base-station.local:7447".
+    pub connect: Option<Vec<String>>,
+    /// Find peers on the LAN by UDP multicast (default without a file: true).
+    pub multicast_scouting: Option<bool>,
 }
 
-impl Default for ZenohSettings {
-    fn default() -> Self {
-        Self {
-            mode: "peer".into(),
-            listen: Vec::new(),
-            connect: Vec::new(),
-            multicast_scouting: true,
+/// The environment variable rmw_zenoh's deployments set to a session's configuration file; the
+/// node reads it when `[zenoh] config` is not set.
+pub const SESSION_CONFIG_ENV: &str = "ZENOH_SESSION_CONFIG_URI";
+
+impl ZenohSettings {
+    /// The configuration file the session starts from: `config`, else `$ZENOH_SESSION_CONFIG_URI`.
+    pub fn file(&self) -> Option<PathBuf> {
+        self.config.clone().or_else(|| {
+            std::env::var_os(SESSION_CONFIG_ENV)
+                .filter(|v| !v.is_empty())
+                .map(PathBuf::from)
+        })
+    }
+
+    /// Checks the keys, and the file when `config` names one (the message names the key).
+    pub fn validate(&self) -> Result<(), String> {
+        if let Some(mode) = self.mode.as_deref().filter(|m| !matches!(*m, "peer" | "client")) {
+            return Err(format!("zenoh.mode '{mode}' must be \"peer\" or \"client\""));
         }
+        let plan = plan(&session_config_from(self, self.config.as_deref()).map_err(|e| e.0)?);
+        if plan.mode == "client" && plan.connect.is_empty() {
+            return Err("zenoh.mode = \"client\" needs a router in zenoh.connect (or the zenoh config file's connect/endpoints)".into());
+        }
+        Ok(())
     }
 }
 
-/// A zenoh session as configured: an embedded peer by default, or a client of routers.
-pub fn open_session(z: &ZenohSettings) -> Result<Session, SessionError> {
-    let mut zc = zenoh::Config::default();
+/// The session's zenoh configuration: the file the settings name (or the environment's), with the
+/// keys that are set applied on top.
+pub fn session_config(z: &ZenohSettings) -> Result<zenoh::Config, SessionError> {
+    session_config_from(z, z.file().as_deref())
+}
+
+/// [`session_config`] from a given file (None: zenoh's defaults, an embedded peer that scouts).
+pub fn session_config_from(z: &ZenohSettings, file: Option<&Path>) -> Result<zenoh::Config, SessionError> {
+    let mut zc = match file {
+        Some(path) => zenoh::Config::from_file(path)
+            .map_err(|e| SessionError(format!("zenoh configuration file {}: {e}", path.display())))?,
+        None => zenoh::Config::default(),
+    };
     let json = |v: &Vec<String>| serde_json::to_string(v).expect("strings serialize");
     let set = |zc: &mut zenoh::Config, key: &str, value: &str| {
         zc.insert_json5(key, value)
             .map_err(|e| SessionError(format!("zenoh setting {key} = {value}: {e}")))
     };
-    set(&mut zc, "mode", &format!("\"{}\"", z.mode))?;
-    if !z.listen.is_empty() {
-        set(&mut zc, "listen/endpoints", &json(&z.listen))?;
+    let mode = z.mode.clone().or_else(|| file.is_none().then(|| "peer".into()));
+    if let Some(mode) = mode {
+        set(&mut zc, "mode", &format!("\"{mode}\""))?;
     }
-    if !z.connect.is_empty() {
-        set(&mut zc, "connect/endpoints", &json(&z.connect))?;
+    if let Some(listen) = &z.listen {
+        set(&mut zc, "listen/endpoints", &json(listen))?;
     }
-    set(
-        &mut zc,
-        "scouting/multicast/enabled",
-        if z.multicast_scouting { "true" } else { "false" },
-    )?;
+    if let Some(connect) = &z.connect {
+        set(&mut zc, "connect/endpoints", &json(connect))?;
+    }
+    if let Some(scouting) = z.multicast_scouting.or_else(|| file.is_none().then_some(true)) {
+        set(
+            &mut zc,
+            "scouting/multicast/enabled",
+            if scouting { "true" } else { "false" },
+        )?;
+    }
+    Ok(zc)
+}
+
+/// What a session will do, read back from its configuration.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SessionPlan {
+    pub mode: String,
+    pub listen: Vec<String>,
+    pub connect: Vec<String>,
+}
+
+/// The mode and endpoints of a configuration (endpoints given per mode are resolved for its mode).
+pub fn plan(zc: &zenoh::Config) -> SessionPlan {
+    let value = |key: &str| {
+        zc.get_json(key)
+            .ok()
+            .and_then(|j| serde_json::from_str::<serde_json::Value>(&j).ok())
+            .unwrap_or(serde_json::Value::Null)
+    };
+    let mode = value("mode").as_str().unwrap_or("peer").to_string();
+    let endpoints = |key: &str| -> Vec<String> {
+        let v = value(key);
+        let list = match &v {
+            serde_json::Value::Object(per_mode) => per_mode.get(&mode).cloned().unwrap_or_default(),
+            other => other.clone(),
+        };
+        list.as_array()
+            .map(|a| a.iter().filter_map(|e| e.as_str().map(str::to_string)).collect())
+            .unwrap_or_default()
+    };
+    SessionPlan {
+        listen: endpoints("listen/endpoints"),
+        connect: endpoints("connect/endpoints"),
+        mode,
+    }
+}
+
+/// Listen endpoints that anyone on the network can reach without TLS: not on a loopback address,
+/// and not `tls/` or `quic/` (whose peers must present the certificate chain the file asks for).
+pub fn open_to_the_network(plan: &SessionPlan) -> Vec<String> {
+    plan.listen
+        .iter()
+        .filter(|endpoint| {
+            let (protocol, address) = endpoint.split_once('/').unwrap_or(("", endpoint));
+            let host = address.rsplit_once(':').map_or(address, |(h, _)| h);
+            let host = host.trim_start_matches('[').trim_end_matches(']');
+            let loopback = host == "localhost" || host.parse::<std::net::IpAddr>().is_ok_and(|ip| ip.is_loopback());
+            !loopback && !matches!(protocol, "tls" | "quic")
+        })
+        .cloned()
+        .collect()
+}
+
+/// A zenoh session as configured: an embedded peer by default, or a client of routers, or
+/// whatever the zenoh configuration file says.
+pub fn open_session(z: &ZenohSettings) -> Result<Session, SessionError> {
+    let zc = session_config(z)?;
     zenoh::open(zc)
         .wait()
         .map_err(|e| SessionError(format!("opening a session: {e}")))
@@ -92,7 +189,8 @@ impl ConnectionWatch {
     /// A watch when the node `publishes` on zenoh and `connect` names endpoints; None otherwise
     /// (an embedded peer with nobody configured to connect to has no outage to report).
     pub fn new(publishes: bool, z: &ZenohSettings, session: Option<&Session>) -> Option<Self> {
-        let session = session.filter(|_| publishes && !z.connect.is_empty())?;
+        let connects = session_config(z).is_ok_and(|zc| !plan(&zc).connect.is_empty());
+        let session = session.filter(|_| publishes && connects)?;
         let mut watch = Self {
             session: session.clone(),
             connected: true,

@@ -30,7 +30,7 @@ fn the_default_config_replays_the_sample_with_the_shipped_bundle() {
         recording.path.is_file(),
         "relative paths resolve against the config's folder"
     );
-    assert!(config.publish.zenoh && config.zenoh.mode == "peer" && config.zenoh.connect.is_empty());
+    assert!(config.publish.zenoh && config.zenoh.mode.is_none() && config.zenoh.connect.is_none());
 }
 
 #[test]

@@ -46,8 +46,8 @@ pub fn test_config(node: &str, endpoint: &str) -> Config {
     config.model.bundle = shipped_bundle();
     config.model.threads = 1;
     config.pipeline.summary_seconds = 0.0;
-    config.zenoh.listen = vec![endpoint.into()];
-    config.zenoh.multicast_scouting = false;
+    config.zenoh.listen = Some(vec![endpoint.into()]);
+    config.zenoh.multicast_scouting = Some(false);
     config
 }
 

@@ -433,9 +433,9 @@ fn a_router_outage_is_counted_and_publishing_resumes_when_it_returns() {
     use std::sync::atomic::Ordering::SeqCst;
     let endpoint = free_endpoint();
     let mut config: Config = test_config("outage", &endpoint);
-    config.zenoh.mode = "client".into();
-    config.zenoh.listen = vec![];
-    config.zenoh.connect = vec![endpoint.clone()];
+    config.zenoh.mode = Some("client".into());
+    config.zenoh.listen = Some(vec![]);
+    config.zenoh.connect = Some(vec![endpoint.clone()]);
     config.sources = vec![toml::from_str(&format!(
         "stream = \"m\"\nkind = \"files\"\npath = {:?}\nrepeat = true\nrate_hz = 20.0",
         repo().join("sim/samples/meshes").display().to_string()

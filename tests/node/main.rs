@@ -12,3 +12,4 @@ mod prepare;
 mod ros2;
 mod sampling;
 mod track;
+mod zenoh_security;
