@@ -60,6 +60,21 @@ fn the_toml_keys_that_are_set_apply_on_top_of_the_zenoh_file() {
 }
 
 #[test]
+fn the_shipped_zenoh_files_parse_and_say_what_they_do() {
+    let folder = crate::helpers::repo().join("config/zenoh");
+    let robot = plan(&session_config_from(&ZenohSettings::default(), Some(&folder.join("robot.json5"))).unwrap());
+    assert_eq!(robot.mode, "client");
+    assert_eq!(robot.connect, vec!["tls/base-station.local:7447"]);
+    assert!(open_to_the_network(&robot).is_empty(), "{robot:?}");
+    let base = plan(&zenoh::Config::from_file(folder.join("base-station.json5")).unwrap());
+    assert_eq!(
+        (base.mode.as_str(), base.listen.clone()),
+        ("router", vec!["tls/0.0.0.0:7447".to_string()])
+    );
+    assert!(open_to_the_network(&base).is_empty());
+}
+
+#[test]
 fn listening_beyond_loopback_without_tls_is_flagged() {
     let plan = gdvae_node::zenoh_session::SessionPlan {
         mode: "peer".into(),
