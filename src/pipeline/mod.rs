@@ -266,8 +266,10 @@ pub fn run(
             Box::new(move || track(done_rx, publish_tx, &config, &stats)),
         )?);
     }
+    let streams: Vec<String> = config.sources.iter().map(|s| s.stream.clone()).collect();
     let mut publisher = Publisher::new(
         &config.publish,
+        &streams,
         &config.node,
         config.model.onnxruntime.as_deref(),
         bundle,

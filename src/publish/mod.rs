@@ -68,9 +68,11 @@ impl Publisher {
     /// The sinks `settings` (`[publish]`) configures, on the keys `node` names. `lossless`: block
     /// on congestion (replay) instead of dropping (live). `session`: the node's zenoh session, when
     /// one is open; `participants`: the node in ROS 2 domains (on that session); `onnxruntime`: the
-    /// library the ROS 2 sink's shape decoder loads (`[model] onnxruntime`).
+    /// library the ROS 2 sink's shape decoder loads (`[model] onnxruntime`); `streams`: the
+    /// configured streams, whose ROS 2 topics are declared at once (before their first frame).
     pub fn new(
         settings: &PublishSettings,
+        streams: &[String],
         node: &NodeSettings,
         onnxruntime: Option<&std::path::Path>,
         bundle: &Bundle,
@@ -97,6 +99,7 @@ impl Publisher {
             let participants = participants.ok_or_else(|| PublishError::Ros2("no zenoh session".into()))?;
             sinks.push(Box::new(ros2::Ros2Sink::new(
                 &settings.ros2,
+                streams,
                 onnxruntime,
                 bundle,
                 participants,

@@ -74,6 +74,7 @@ pub struct Ros2Sink {
 impl Ros2Sink {
     pub fn new(
         settings: &Ros2Settings,
+        streams: &[String],
         onnxruntime: Option<&std::path::Path>,
         bundle: &Bundle,
         participants: &Participants,
@@ -113,6 +114,11 @@ impl Ros2Sink {
                 depth: 100,
             };
             sink.tf = Some(sink.declare("/tf", &msg::TF_MESSAGE, qos)?);
+        }
+        // Every configured stream's topics now, so that `ros2 topic list` and `ros2 node info`
+        // show them before the sensor starts (a stream that appears later gets its own then).
+        for stream in streams {
+            sink.stream(stream)?;
         }
         Ok(sink)
     }

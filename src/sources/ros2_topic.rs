@@ -5,7 +5,8 @@
 //! It subscribes on the topic's key with any type and any type hash (a Humble, Jazzy or Rolling
 //! publisher computes its own), and watches the graph's liveliness for the topic's publishers: for
 //! each type and hash one advertises, it declares a matching subscription token (MS), so that a
-//! publisher that waits for subscribers starts sending. Each sample must carry rmw_zenoh's
+//! publisher that waits for subscribers starts sending; only for the types it reads (PointCloud2,
+//! Image; CameraInfo on the info topic). Each sample must carry rmw_zenoh's
 //! attachment; a sample of another type, or without a valid attachment, is a counted rejection.
 
 use std::sync::{Arc, Mutex};
@@ -156,6 +157,16 @@ pub fn subscribe(
                     return;
                 }
                 let (topic, dds_type, hash) = (parts[9].replace('%', "/"), parts[10], parts[11]);
+                // Only the types the node reads: a publisher of another type on the topic gets no
+                // subscription (it would list the node with that type, long after it has gone).
+                let reads = if parts[9] == watched[1] {
+                    dds_type == msg::CAMERA_INFO.dds_name()
+                } else {
+                    dds_type == msg::POINT_CLOUD2.dds_name() || dds_type == msg::IMAGE.dds_name()
+                };
+                if !reads {
+                    return;
+                }
                 let id = format!("{topic} {dds_type} {hash}");
                 let mut tokens = tokens.lock().unwrap_or_else(|e| e.into_inner());
                 if tokens.iter().any(|(known, _)| *known == id) {

@@ -239,6 +239,8 @@ summary_seconds = 0.0
 zenoh = false
 jsonl = "{jsonl}"
 [publish.ros2]
+enabled = true
+markers = false
 domain_id = {DOMAIN}
 node_name = "listener"
 [zenoh]
@@ -263,6 +265,20 @@ key = "{DOMAIN}/lidar/points/sensor_msgs::msg::dds_::PointCloud2_/*"
         with client(endpoint) as session:
             zid = str(session.zid())
             qos = "::,10:,:,:,,"
+            # Before any camera exists, the node's output topics for the stream are declared.
+            deadline = time.monotonic() + 60
+            outputs = []
+            while len(outputs) < 6 and time.monotonic() < deadline:
+                outputs = [parse_token(str(r.ok.key_expr)) for r in session.liveliness().get(
+                    f"@ros2_lv/{DOMAIN}/*/*/*/MP/**", timeout=1.0) if r.ok is not None]
+                outputs = [e for e in outputs if e["topic"].startswith("/gdvae/cam/")]
+            assert sorted(e["topic"] for e in outputs) == sorted(
+                f"/gdvae/cam/{what}" for what in ["pose", "z_e", "z_i", "state", "events", "rejected"]), outputs
+            # A publisher of a type the node does not read on its input topic gets no subscription.
+            wrong_type = "std_msgs/msg/String"
+            wrong_token = session.liveliness().declare_token(
+                f"@ros2_lv/{DOMAIN}/{zid}/0/2/MP/%/%/talker/%camera%depth%points/{dds_name(wrong_type)}/"
+                f"{STORE.hash_rihs01(wrong_type)}/{qos}")
             node_token = session.liveliness().declare_token(f"@ros2_lv/{DOMAIN}/{zid}/0/0/NN/%/%/talker")
             pub_token = (f"@ros2_lv/{DOMAIN}/{zid}/0/1/MP/%/%/talker/%camera%depth%points/{dds_name(cloud_type)}/"
                          f"{STORE.hash_rihs01(cloud_type)}/{qos}")
@@ -275,6 +291,10 @@ key = "{DOMAIN}/lidar/points/sensor_msgs::msg::dds_::PointCloud2_/*"
                 matched = [str(r.ok.key_expr) for r in session.liveliness().get(pattern, timeout=1.0)
                            if r.ok is not None]
             assert matched, "the node declared a subscription token for the topic"
+            subscriptions = [parse_token(str(r.ok.key_expr)) for r in session.liveliness().get(
+                f"@ros2_lv/{DOMAIN}/*/*/*/MS/*/*/*/%camera%depth%points/**", timeout=1.0) if r.ok is not None]
+            assert {e["type"] for e in subscriptions} == {dds_name(cloud_type)}, subscriptions
+            wrong_token.undeclare()
             subscription = parse_token(matched[0])
             assert subscription["node"] == "listener" and subscription["hash"] == STORE.hash_rihs01(cloud_type)
 
