@@ -150,6 +150,11 @@ impl Config {
             resolve(&mut path);
             *jsonl = path.display().to_string();
         }
+        if let Some(mcap) = self.publish.mcap.as_mut() {
+            let mut path = PathBuf::from(&*mcap);
+            resolve(&mut path);
+            *mcap = path.display().to_string();
+        }
         for source in &mut self.sources {
             if let Some(p) = source.path_mut() {
                 resolve(p);

@@ -74,6 +74,9 @@ struct RunArgs {
     /// and the periodic summary are then off.
     #[arg(long)]
     live_summary: bool,
+    /// Record every published message to this MCAP file (as `[publish] mcap`).
+    #[arg(long)]
+    record: Option<String>,
 }
 
 #[derive(clap::Args)]
@@ -95,6 +98,9 @@ struct ReplayArgs {
     /// Write every state as a JSON line to this file ("-": stdout).
     #[arg(long)]
     jsonl: Option<String>,
+    /// Record every published message to this MCAP file.
+    #[arg(long)]
+    record: Option<String>,
     /// Print the report as JSON.
     #[arg(long)]
     json: bool,
@@ -208,6 +214,9 @@ fn run(command: Command) -> Result<()> {
 /// `run`: the daemon, as its config says.
 fn run_node(args: RunArgs) -> Result<()> {
     let mut config = Config::read(&args.config)?;
+    if args.record.is_some() {
+        config.publish.mcap = args.record.clone();
+    }
     if args.live_summary {
         // The live summary owns stdout: no JSON lines there, no periodic summary in between.
         if config.publish.jsonl.take().is_some() {
@@ -229,6 +238,9 @@ fn replay(args: ReplayArgs) -> Result<()> {
     config.sources = gdvae_node::sources::replay_sources(&args.inputs, args.speed);
     config.publish.zenoh = args.zenoh;
     config.publish.jsonl = args.jsonl;
+    if args.record.is_some() {
+        config.publish.mcap = args.record;
+    }
     let config = validated(config, &origin)?;
     let options = RunOptions {
         lossless_publish: true,

@@ -1,6 +1,6 @@
 //! Publish: every published message goes to each configured sink. A sink is one way out of the
-//! node: zenoh JSON/CBOR on the node's own keys (`zenoh.rs`), JSON lines (`jsonl.rs`), ROS 2 over
-//! rmw_zenoh (`ros2.rs`). Adding one means a module here that implements [`Sink`], its settings
+//! node: zenoh JSON/CBOR on the node's own keys (`zenoh.rs`), JSON lines (`jsonl.rs`), an MCAP
+//! recording (`mcap_sink.rs`), ROS 2 over rmw_zenoh (`ros2.rs`). Adding one means a module here that implements [`Sink`], its settings
 //! under `[publish]`, and a line in [`Publisher::new`].
 //!
 //! A sink never blocks the pipeline on a slow subscriber in live runs (zenoh congestion control:
@@ -9,6 +9,7 @@
 //! its end.
 
 mod jsonl;
+mod mcap_sink;
 pub mod ros2;
 mod sink;
 mod zenoh_sink;
@@ -34,6 +35,8 @@ pub struct PublishSettings {
     pub format: Format,
     /// Also write one JSON line per state: a file path, or "-" for stdout.
     pub jsonl: Option<String>,
+    /// Also record every published message to this MCAP file (a channel per stream and kind).
+    pub mcap: Option<String>,
     /// The node as a ROS 2 node over rmw_zenoh (`[publish.ros2]`).
     pub ros2: Ros2Settings,
 }
@@ -43,6 +46,9 @@ impl PublishSettings {
     pub fn validate(&self) -> Result<(), String> {
         if self.jsonl.as_deref() == Some("") {
             return Err("publish.jsonl must be a file path or \"-\" (stdout)".into());
+        }
+        if self.mcap.as_deref().is_some_and(|p| p.is_empty() || p == "-") {
+            return Err("publish.mcap must be a file path".into());
         }
         self.ros2.validate()
     }
@@ -54,6 +60,7 @@ impl Default for PublishSettings {
             zenoh: true,
             format: Format::Json,
             jsonl: None,
+            mcap: None,
             ros2: Ros2Settings::default(),
         }
     }
@@ -83,6 +90,9 @@ impl Publisher {
         let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
         if let Some(path) = settings.jsonl.as_deref() {
             sinks.push(Box::new(jsonl::JsonLines::create(path)?));
+        }
+        if let Some(path) = settings.mcap.as_deref() {
+            sinks.push(Box::new(mcap_sink::McapSink::create(path)?));
         }
         if settings.zenoh {
             let session = session
