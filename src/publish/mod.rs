@@ -1,6 +1,7 @@
 //! Publish: every published message goes to each configured sink. A sink is one way out of the
 //! node: zenoh JSON/CBOR on the node's own keys (`zenoh.rs`), JSON lines (`jsonl.rs`), an MCAP
-//! recording (`mcap_sink.rs`), ROS 2 over rmw_zenoh (`ros2.rs`). Adding one means a module here that implements [`Sink`], its settings
+//! recording (`mcap_sink.rs`), the Foxglove live view (`foxglove_sink.rs`), ROS 2 over rmw_zenoh
+//! (`ros2.rs`). Adding one means a module here that implements [`Sink`], its settings
 //! under `[publish]`, and a line in [`Publisher::new`].
 //!
 //! A sink never blocks the pipeline on a slow subscriber in live runs (zenoh congestion control:
@@ -8,6 +9,7 @@
 //! file on a full disk) closes itself with one log line; the others go on, and the run fails at
 //! its end.
 
+mod foxglove_sink;
 mod jsonl;
 mod mcap_sink;
 pub mod ros2;
@@ -25,6 +27,7 @@ use crate::zenoh_session::NodeSettings;
 pub use sink::{PublishError, Sink};
 pub use zenoh_sink::{encode, Format};
 
+pub use foxglove_sink::FoxgloveSettings;
 pub use ros2::Ros2Settings;
 
 #[derive(Debug, Clone, Deserialize, Serialize)]
@@ -39,6 +42,8 @@ pub struct PublishSettings {
     pub mcap: Option<String>,
     /// The node as a ROS 2 node over rmw_zenoh (`[publish.ros2]`).
     pub ros2: Ros2Settings,
+    /// A Foxglove WebSocket server for a live view (`[publish.foxglove]`).
+    pub foxglove: FoxgloveSettings,
 }
 
 impl PublishSettings {
@@ -50,6 +55,7 @@ impl PublishSettings {
         if self.mcap.as_deref().is_some_and(|p| p.is_empty() || p == "-") {
             return Err("publish.mcap must be a file path".into());
         }
+        self.foxglove.validate()?;
         self.ros2.validate()
     }
 }
@@ -62,6 +68,7 @@ impl Default for PublishSettings {
             jsonl: None,
             mcap: None,
             ros2: Ros2Settings::default(),
+            foxglove: FoxgloveSettings::default(),
         }
     }
 }
@@ -104,6 +111,12 @@ impl Publisher {
                 session,
                 lossless,
             )));
+        }
+        if settings.foxglove.enabled {
+            sinks.push(Box::new(foxglove_sink::FoxgloveSink::start(
+                &settings.foxglove,
+                streams,
+            )?));
         }
         if settings.ros2.enabled {
             let participants = participants.ok_or_else(|| PublishError::Ros2("no zenoh session".into()))?;

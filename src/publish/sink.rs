@@ -13,6 +13,8 @@ pub enum PublishError {
     Encode(String),
     #[error("ROS 2: {0}")]
     Ros2(String),
+    #[error("Foxglove live view: {0}")]
+    Foxglove(String),
     #[error("every output has failed; the message is lost")]
     Closed,
 }

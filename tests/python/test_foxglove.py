@@ -1,0 +1,116 @@
+"""The Foxglove live view (`[publish.foxglove]`) seen by a client of the Foxglove WebSocket protocol
+(subprotocol foxglove.sdk.v1, written here with `websockets`; protobuf messages decoded with the schema
+the server advertises): the advertised channels and schemas, and messages whose contents are the
+JSON states' (pose, identity)."""
+
+import asyncio
+import base64
+import json
+import math
+import signal
+import struct
+import subprocess
+import time
+
+import websockets
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+from node_paths import NODE, ROOT, free_port, sample_settings
+
+TOPICS = {"/gdvae/cam/state": "gdvae.state/1", "/gdvae/cam/transform": "foxglove.FrameTransform",
+          "/gdvae/cam/scene": "foxglove.SceneUpdate"}
+
+
+def decoder(channel):
+    """A function from a message's bytes to its contents, by the channel's advertised schema."""
+    if channel["encoding"] == "json":
+        return json.loads
+    files = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
+    pool = descriptor_pool.DescriptorPool()
+    for file in files.file:
+        pool.Add(file)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"])).FromString
+
+
+async def watch(port, wanted):
+    """Connects, subscribes to TOPICS, and collects `wanted` messages of each."""
+    async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"],
+                                  max_size=None) as ws:
+        channels, received = {}, {topic: [] for topic in TOPICS}
+        subscribed = {}
+        while min(len(v) for v in received.values()) < wanted:
+            message = await asyncio.wait_for(ws.recv(), timeout=30)
+            if isinstance(message, str):
+                op = json.loads(message)
+                if op["op"] == "advertise":
+                    channels.update({c["topic"]: c for c in op["channels"]})
+                    todo = [t for t in TOPICS if t in channels and t not in subscribed.values()]
+                    if todo:
+                        subscriptions = [{"id": len(subscribed) + i, "channelId": channels[t]["id"]}
+                                         for i, t in enumerate(todo)]
+                        subscribed.update({s["id"]: t for s, t in zip(subscriptions, todo)})
+                        await ws.send(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
+            elif message[0] == 1:  # message data: subscription id, log time, payload
+                subscription, log_time = struct.unpack_from("<IQ", message, 1)
+                topic = subscribed[subscription]
+                received[topic].append((log_time, decoder(channels[topic])(message[13:])))
+        return channels, received
+
+
+def test_a_foxglove_client_receives_the_states_the_object_frame_and_the_scene(tmp_path):
+    port, jsonl = free_port(), tmp_path / "states.jsonl"
+    config = tmp_path / "node.toml"
+    config.write_text(f"""{sample_settings()}
+[publish]
+zenoh = false
+jsonl = "{jsonl}"
+[publish.foxglove]
+enabled = true
+port = {port}
+[[source]]
+stream = "cam"
+kind = "mcap"
+path = "{ROOT / 'sim/samples/walk_switch.mcap'}"
+speed = 1.0
+repeat = true
+""")
+    node = subprocess.Popen([NODE, "-q", "run", "--config", str(config)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                channels, received = asyncio.run(watch(port, 20))
+                break
+            except OSError:
+                assert time.monotonic() < deadline and node.poll() is None, node.stderr.read().decode()
+                time.sleep(0.2)
+        node.send_signal(signal.SIGINT)
+        _, err = node.communicate(timeout=60)
+        assert node.returncode == 0, err.decode()
+    finally:
+        if node.poll() is None:
+            node.kill()
+    for topic, schema in TOPICS.items():
+        assert channels[topic]["schemaName"] == schema
+        assert channels[topic]["encoding"] == ("json" if topic.endswith("/state") else "protobuf")
+    states = {s["stamps"]["sensor_ns"]: s for s in map(json.loads, jsonl.read_text().splitlines())
+              if s["schema"] == "gdvae.state/1"}
+    # The live states are the published ones.
+    for _, state in received["/gdvae/cam/state"]:
+        assert state == states[state["stamps"]["sensor_ns"]]
+    # The object's frame: at the estimated centre, turned by the filtered heading.
+    for _, transform in received["/gdvae/cam/transform"]:
+        stamp = transform.timestamp.seconds * 1_000_000_000 + transform.timestamp.nanos
+        state = states[stamp]
+        assert (transform.parent_frame_id, transform.child_frame_id) == ("gravity", "gdvae/cam")
+        centre = [transform.translation.x, transform.translation.y, transform.translation.z]
+        assert all(abs(a - b) < 1e-5 for a, b in zip(centre, state["centre_m"]))
+        yaw = state["filtered"]["yaw"]
+        assert abs(transform.rotation.z - math.sin(yaw / 2)) < 1e-5
+    # The scene: a heading arrow and the identity's label in that frame.
+    for _, scene in received["/gdvae/cam/scene"]:
+        entity = scene.entities[0]
+        stamp = entity.timestamp.seconds * 1_000_000_000 + entity.timestamp.nanos
+        assert entity.frame_id == "gdvae/cam" and len(entity.arrows) == 1
+        assert f"identity {states[stamp]['shape']['identity']} " in entity.texts[0].text
