@@ -112,6 +112,10 @@ pub struct State {
     pub shape: Shape,
     /// Set on the frame that completed an identity change.
     pub event: Option<IdentityEvent>,
+    /// The N_p points the encoder saw (model units, centred on `centre_m`), for the sinks that show
+    /// them (the Foxglove view); not part of the published message.
+    #[serde(skip)]
+    pub prepared: Option<std::sync::Arc<Vec<[f32; 3]>>>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -260,7 +260,7 @@ pub(super) fn track(
                     }
                     rejected_output(&node, r)
                 }
-                Done::Encoded(frame) => {
+                Done::Encoded(mut frame) => {
                     let dt = match (frame.origin.sensor_stamp_ns, tracker.last_stamp_ns) {
                         (Some(now), Some(last)) if now > last && now - last < 1_000_000_000 => {
                             (now - last) as f32 * 1e-9
@@ -287,7 +287,10 @@ pub(super) fn track(
                         },
                     };
                     match contained("track", || tracker.tracker.state(&node, &observed, dt)) {
-                        Ok(state) => Output::State(Box::new(state)),
+                        Ok(mut state) => {
+                            state.prepared = Some(std::sync::Arc::new(std::mem::take(&mut frame.prepared.points)));
+                            Output::State(Box::new(state))
+                        }
                         Err(message) => {
                             // The stream's filters may be half updated: start them afresh.
                             tracker.tracker = StreamTracker::new(settings);

@@ -1,17 +1,18 @@
 //! The Foxglove live view (`[publish.foxglove]`): a Foxglove WebSocket server (the Foxglove SDK's)
 //! that the Foxglove app, or any client of its protocol, connects to. Per stream: the state as
 //! JSON (`/gdvae/<stream>/state`, every field ready to plot), the object's frame in the gravity
-//! frame (`/gdvae/<stream>/transform`: at the estimated centre, turned by the filtered heading) and
-//! a scene (`/gdvae/<stream>/scene`: a heading arrow and a label with the identity and its
-//! confidence). Off by default. The server sends each client's messages from its own queue
+//! frame (`/gdvae/<stream>/transform`: at the estimated centre, turned by the filtered heading), the
+//! N_p points the encoder saw (`/gdvae/<stream>/points`, in metres in the gravity frame) and a scene
+//! (`/gdvae/<stream>/scene`: a heading arrow and a label with the identity and its confidence). Off by default. The server sends each client's messages from its own queue
 //! (`backlog` messages); a viewer that cannot keep up loses the oldest, never the pipeline's time.
 
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use foxglove::schemas::{
-    ArrowPrimitive, Color, FrameTransform, Pose, Quaternion, SceneEntity, SceneUpdate, TextPrimitive, Timestamp,
-    Vector3,
+use foxglove::messages::packed_element_field::NumericType;
+use foxglove::messages::{
+    ArrowPrimitive, Color, FrameTransform, PackedElementField, PointCloud, Pose, Quaternion, SceneEntity, SceneUpdate,
+    TextPrimitive, Timestamp, Vector3,
 };
 use serde::{Deserialize, Serialize};
 
@@ -57,6 +58,7 @@ impl FoxgloveSettings {
 struct StreamChannels {
     state: Arc<foxglove::RawChannel>,
     transform: foxglove::Channel<FrameTransform>,
+    points: foxglove::Channel<PointCloud>,
     scene: foxglove::Channel<SceneUpdate>,
 }
 
@@ -65,11 +67,17 @@ pub struct FoxgloveSink {
     context: Arc<foxglove::Context>,
     server: Option<foxglove::WebSocketServerHandle>,
     streams: HashMap<String, StreamChannels>,
+    /// The bundle's model units per metre: the prepared points back to metres.
+    model_units_per_metre: f32,
 }
 
 impl FoxgloveSink {
     /// Starts the server; its channels are declared for every configured stream at once.
-    pub fn start(settings: &FoxgloveSettings, streams: &[String]) -> Result<Self, PublishError> {
+    pub fn start(
+        settings: &FoxgloveSettings,
+        streams: &[String],
+        model_units_per_metre: f64,
+    ) -> Result<Self, PublishError> {
         let context = foxglove::Context::new();
         let server = foxglove::WebSocketServer::new()
             .name("gdvae-node")
@@ -88,6 +96,7 @@ impl FoxgloveSink {
             context,
             server: Some(server),
             streams: HashMap::new(),
+            model_units_per_metre: model_units_per_metre as f32,
         };
         for stream in streams {
             sink.channels(stream)?;
@@ -113,6 +122,7 @@ impl FoxgloveSink {
             let channels = StreamChannels {
                 state,
                 transform: self.context.channel_builder(topic("transform")).build(),
+                points: self.context.channel_builder(topic("points")).build(),
                 scene: self.context.channel_builder(topic("scene")).build(),
             };
             self.streams.insert(stream.to_string(), channels);
@@ -123,6 +133,7 @@ impl FoxgloveSink {
     fn publish_state(&mut self, state: &State) -> Result<(), PublishError> {
         let json = serde_json::to_vec(state).map_err(|e| PublishError::Encode(e.to_string()))?;
         let parent = self.settings.frame_id.clone();
+        let metres_per_unit = 1.0 / self.model_units_per_metre;
         let channels = self.channels(&state.stream)?;
         let stamp = state.stamps.sensor_ns.unwrap_or(state.stamps.ingest_ns);
         let timestamp = Some(Timestamp::new(
@@ -135,6 +146,29 @@ impl FoxgloveSink {
                 log_time: Some(state.stamps.publish_ns),
             },
         );
+        if let Some(points) = &state.prepared {
+            let c = state.centre_m;
+            let data: Vec<u8> = points
+                .iter()
+                .flat_map(|p| (0..3).flat_map(move |a| (p[a] * metres_per_unit + c[a]).to_le_bytes()))
+                .collect();
+            let field = |name: &str, offset: u32| PackedElementField {
+                name: name.into(),
+                offset,
+                r#type: NumericType::Float32 as i32,
+            };
+            channels.points.log_with_time(
+                &PointCloud {
+                    timestamp,
+                    frame_id: parent.clone(),
+                    pose: None,
+                    point_stride: 12,
+                    fields: vec![field("x", 0), field("y", 4), field("z", 8)],
+                    data: data.into(),
+                },
+                state.stamps.publish_ns,
+            );
+        }
         let frame = format!("gdvae/{}", state.stream);
         let half = 0.5 * state.filtered.yaw as f64;
         let c = state.centre_m;

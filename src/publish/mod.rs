@@ -116,6 +116,7 @@ impl Publisher {
             sinks.push(Box::new(foxglove_sink::FoxgloveSink::start(
                 &settings.foxglove,
                 streams,
+                bundle.manifest.units.model_units_per_metre,
             )?));
         }
         if settings.ros2.enabled {

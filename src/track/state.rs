@@ -89,6 +89,7 @@ impl StreamTracker {
                 previous: c.previous,
                 identity: c.identity,
             }),
+            prepared: None,
         }
     }
 }

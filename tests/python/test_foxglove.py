@@ -18,7 +18,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from node_paths import NODE, ROOT, free_port, sample_settings
 
 TOPICS = {"/gdvae/cam/state": "gdvae.state/1", "/gdvae/cam/transform": "foxglove.FrameTransform",
-          "/gdvae/cam/scene": "foxglove.SceneUpdate"}
+          "/gdvae/cam/points": "foxglove.PointCloud", "/gdvae/cam/scene": "foxglove.SceneUpdate"}
 
 
 def decoder(channel):
@@ -108,6 +108,20 @@ repeat = true
         assert all(abs(a - b) < 1e-5 for a, b in zip(centre, state["centre_m"]))
         yaw = state["filtered"]["yaw"]
         assert abs(transform.rotation.z - math.sin(yaw / 2)) < 1e-5
+    # The points the encoder saw: N_p of them in metres in the gravity frame, their box centred on
+    # the state's centre (the prepare step centres on the bounding box).
+    for _, cloud in received["/gdvae/cam/points"]:
+        stamp = cloud.timestamp.seconds * 1_000_000_000 + cloud.timestamp.nanos
+        state = states[stamp]
+        assert cloud.frame_id == "gravity" and cloud.point_stride == 12
+        assert [f.name for f in cloud.fields] == ["x", "y", "z"]
+        xyz = struct.unpack(f"<{len(cloud.data) // 4}f", cloud.data)
+        points = [xyz[i:i + 3] for i in range(0, len(xyz), 3)]
+        assert len(points) == 256
+        for axis in range(3):
+            low, high = min(p[axis] for p in points), max(p[axis] for p in points)
+            assert abs((low + high) / 2 - state["centre_m"][axis]) < 1e-3
+            assert 0.05 < high - low < 3.0, "an object's size in metres"
     # The scene: a heading arrow and the identity's label in that frame.
     for _, scene in received["/gdvae/cam/scene"]:
         entity = scene.entities[0]
