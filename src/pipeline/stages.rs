@@ -66,8 +66,7 @@ pub(super) fn prepare(rx: Receiver<Ticketed<Ingest>>, tx: Sender<Ticketed<Work>>
                 let result = contained("prepare", || preparer.prepare_measured(&frame, &mut cpu));
                 let prepare_ms = ms_since(start);
                 stats.record("prepare", prepare_ms);
-                let spent: Vec<(&'static str, u64)> = STEPS.iter().copied().zip(cpu).collect();
-                stats.add_cpu(&spent);
+                stats.add_cpu(&std::array::from_fn::<_, { STEPS.len() }, _>(|i| (STEPS[i], cpu[i])));
                 match result {
                     Err(message) => Work::Rejected(origin_of(&frame).reject("prepare", message)),
                     Ok(Ok(prepared)) => Work::Frame(PreparedFrame {
