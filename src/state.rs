@@ -116,6 +116,10 @@ pub struct State {
     /// them (the Foxglove view); not part of the published message.
     #[serde(skip)]
     pub prepared: Option<std::sync::Arc<Vec<[f32; 3]>>>,
+    /// The input cloud, decimated (metres, gravity frame), for the sinks that show it
+    /// (`[publish.view] input_points`); not part of the published message.
+    #[serde(skip)]
+    pub input: Option<std::sync::Arc<Vec<[f32; 3]>>>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

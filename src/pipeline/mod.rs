@@ -147,7 +147,8 @@ pub fn run(
             bundle.manifest.sizes.points,
             bundle.manifest.units.model_units_per_metre as f32,
         )
-        .with_sensor_poses(config.sources.iter().map(crate::sources::SourceSettings::sensor_pose)),
+        .with_sensor_poses(config.sources.iter().map(crate::sources::SourceSettings::sensor_pose))
+        .showing_input(config.publish.input_points()),
     );
 
     // Sources, subscriptions first: if one fails, no source thread has started yet.

@@ -288,6 +288,7 @@ pub(super) fn track(
                     match contained("track", || tracker.tracker.state(&node, &observed, dt)) {
                         Ok(mut state) => {
                             state.prepared = Some(std::sync::Arc::new(std::mem::take(&mut frame.prepared.points)));
+                            state.input = frame.prepared.input.take().map(std::sync::Arc::new);
                             Output::State(Box::new(state))
                         }
                         Err(message) => {

@@ -69,6 +69,9 @@ pub struct Prepared {
     pub centre_m: [f32; 3],
     /// Points after filtering (before subsampling or padding).
     pub points_kept: usize,
+    /// The input cloud decimated to at most [`Preparer::showing_input`]'s points (metres, gravity
+    /// frame by the sensor pose, before any levelling), for the sinks that show it.
+    pub input: Option<Vec<[f32; 3]>>,
 }
 
 type Pose = (Matrix3<f32>, Vector3<f32>);
@@ -86,6 +89,8 @@ pub struct Preparer {
     per_stream: HashMap<String, Pose>,
     points: usize,
     model_units_per_metre: f32,
+    /// Keep a decimated copy of the input of at most this many points (0: none).
+    input_points: usize,
 }
 
 impl Preparer {
@@ -99,7 +104,15 @@ impl Preparer {
             per_stream: HashMap::new(),
             points,
             model_units_per_metre,
+            input_points: 0,
         }
+    }
+
+    /// Keeps a copy of each frame's input decimated to at most `points` points (every k-th), for
+    /// the sinks that show it (0: none).
+    pub fn showing_input(mut self, points: usize) -> Self {
+        self.input_points = points;
+        self
     }
 
     /// The streams' own sensor poses, where their sources set one (each part falls back to
@@ -139,6 +152,11 @@ impl Preparer {
             translation,
             s.crop.as_ref().filter(|_| !estimate_ground),
         );
+        let input = (self.input_points > 0).then(|| {
+            let every = frame.cloud.points.len().div_ceil(self.input_points).max(1);
+            let decimated: Vec<[f32; 3]> = frame.cloud.points.iter().step_by(every).copied().collect();
+            transform_and_crop(&decimated, to_metres, rotation, translation, None)
+        });
         cpu[Step::Transform as usize] += clock.lap();
         if estimate_ground {
             self.ground(&mut points, seed)?;
@@ -162,6 +180,7 @@ impl Preparer {
                 points: chosen,
                 centre_m,
                 points_kept,
+                input,
             }
         });
         cpu[Step::Sample as usize] += clock.lap();

@@ -1,23 +1,29 @@
 //! The Foxglove live view (`[publish.foxglove]`): a Foxglove WebSocket server (the Foxglove SDK's)
 //! that the Foxglove app, or any client of its protocol, connects to. Per stream: the state as
-//! JSON (`/gdvae/<stream>/state`, every field ready to plot), the object's frame in the gravity
-//! frame (`/gdvae/<stream>/transform`: at the estimated centre, turned by the filtered heading), the
-//! N_p points the encoder saw (`/gdvae/<stream>/points`, in metres in the gravity frame) and a scene
-//! (`/gdvae/<stream>/scene`: a heading arrow and a label with the identity and its confidence). Off by default. The server sends each client's messages from its own queue
-//! (`backlog` messages); a viewer that cannot keep up loses the oldest, never the pipeline's time.
+//! JSON (`/gdvae/<stream>/state`, every field ready to plot) and the view of it (`view.rs`): the
+//! object's frame (`/transform`), the input cloud (`/input`), the points the encoder saw
+//! (`/points`), the decoded shape at the estimated pose (`/shape`) and the heading arrow with the
+//! identity's label (`/scene`). Off by default.
+//!
+//! Nothing here costs the pipeline while no viewer subscribes; while one does, the publish thread
+//! only hands each state to the view's own thread through a bounded queue, and a state that does
+//! not fit is dropped from the view, counted and logged. The server then sends each viewer's
+//! messages from its own queue (`backlog` messages): a viewer that cannot keep up loses the oldest
+//! (the SDK logs "outbox for client ... full"), never the pipeline's time, and memory stays bounded.
 
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use foxglove::messages::packed_element_field::NumericType;
-use foxglove::messages::{
-    ArrowPrimitive, Color, FrameTransform, PackedElementField, PointCloud, Pose, Quaternion, SceneEntity, SceneUpdate,
-    TextPrimitive, Timestamp, Vector3,
-};
+use foxglove::messages::{FrameTransform, PointCloud, SceneUpdate};
 use serde::{Deserialize, Serialize};
 
+use super::shapes::{Shape, ShapeWorker};
 use super::sink::{PublishError, Sink};
+use super::view::{self, ViewSettings};
 use crate::state::{Output, State, STATE_SCHEMA};
+
+/// States waiting for the view's thread; more are dropped from the view and counted.
+const VIEW_QUEUE: usize = 64;
 
 /// `[publish.foxglove]`.
 #[derive(Debug, Clone, Deserialize, Serialize)]
@@ -30,8 +36,6 @@ pub struct FoxgloveSettings {
     pub port: u16,
     /// Messages queued per viewer before the oldest are dropped.
     pub backlog: usize,
-    /// The gravity frame's name (the parent of each stream's object frame).
-    pub frame_id: String,
 }
 
 impl Default for FoxgloveSettings {
@@ -41,15 +45,14 @@ impl Default for FoxgloveSettings {
             bind: "127.0.0.1".into(),
             port: 8765,
             backlog: 256,
-            frame_id: "gravity".into(),
         }
     }
 }
 
 impl FoxgloveSettings {
     pub fn validate(&self) -> Result<(), String> {
-        if self.enabled && (self.bind.is_empty() || self.backlog == 0 || self.frame_id.is_empty()) {
-            return Err("publish.foxglove: bind and frame_id must be set and backlog at least 1".into());
+        if self.enabled && (self.bind.is_empty() || self.backlog == 0) {
+            return Err("publish.foxglove: bind must be set and backlog at least 1".into());
         }
         Ok(())
     }
@@ -58,24 +61,65 @@ impl FoxgloveSettings {
 struct StreamChannels {
     state: Arc<foxglove::RawChannel>,
     transform: foxglove::Channel<FrameTransform>,
+    input: foxglove::Channel<PointCloud>,
     points: foxglove::Channel<PointCloud>,
+    shape: foxglove::Channel<PointCloud>,
     scene: foxglove::Channel<SceneUpdate>,
 }
 
+impl StreamChannels {
+    fn declare(context: &Arc<foxglove::Context>, stream: &str) -> Result<Self, PublishError> {
+        let topic = |what: &str| view::topic(stream, what);
+        let schema = foxglove::Schema::new(STATE_SCHEMA, "jsonschema", super::mcap_sink::json_schema(STATE_SCHEMA));
+        let state = context
+            .channel_builder(topic("state"))
+            .message_encoding("json")
+            .schema(schema)
+            .build_raw()
+            .map_err(|e| PublishError::Foxglove(e.to_string()))?;
+        Ok(Self {
+            state,
+            transform: context.channel_builder(topic("transform")).build(),
+            input: context.channel_builder(topic("input")).build(),
+            points: context.channel_builder(topic("points")).build(),
+            shape: context.channel_builder(topic("shape")).build(),
+            scene: context.channel_builder(topic("scene")).build(),
+        })
+    }
+
+    /// Whether any viewer subscribes to any of them.
+    fn watched(&self) -> bool {
+        self.state.has_sinks()
+            || self.transform.has_sinks()
+            || self.input.has_sinks()
+            || self.points.has_sinks()
+            || self.shape.has_sinks()
+            || self.scene.has_sinks()
+    }
+}
+
+type Channels = Arc<HashMap<String, StreamChannels>>;
+
 pub struct FoxgloveSink {
-    settings: FoxgloveSettings,
     context: Arc<foxglove::Context>,
     server: Option<foxglove::WebSocketServerHandle>,
-    streams: HashMap<String, StreamChannels>,
-    /// The bundle's model units per metre: the prepared points back to metres.
-    model_units_per_metre: f32,
+    /// Every configured stream's channels; a stream that appears later gets its own on the way.
+    channels: Channels,
+    queue: Option<crossbeam_channel::Sender<(State, Option<Shape>)>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    view: ViewSettings,
+    shapes: Option<Arc<ShapeWorker>>,
+    metres_per_unit: f32,
+    dropped: u64,
 }
 
 impl FoxgloveSink {
-    /// Starts the server; its channels are declared for every configured stream at once.
+    /// Starts the server and the view's thread; channels are declared for every configured stream.
     pub fn start(
         settings: &FoxgloveSettings,
+        view: &ViewSettings,
         streams: &[String],
+        shapes: Option<Arc<ShapeWorker>>,
         model_units_per_metre: f64,
     ) -> Result<Self, PublishError> {
         let context = foxglove::Context::new();
@@ -92,167 +136,115 @@ impl FoxgloveSink {
             server.port()
         );
         let mut sink = Self {
-            settings: settings.clone(),
             context,
             server: Some(server),
-            streams: HashMap::new(),
-            model_units_per_metre: model_units_per_metre as f32,
+            channels: Arc::default(),
+            queue: None,
+            thread: None,
+            view: view.clone(),
+            shapes,
+            metres_per_unit: 1.0 / model_units_per_metre as f32,
+            dropped: 0,
         };
-        for stream in streams {
-            sink.channels(stream)?;
-        }
+        sink.declare(streams)?;
         Ok(sink)
     }
 
-    fn channels(&mut self, stream: &str) -> Result<&StreamChannels, PublishError> {
-        if !self.streams.contains_key(stream) {
-            let topic = |what: &str| format!("/gdvae/{stream}/{what}");
-            let schema = foxglove::Schema::new(
-                STATE_SCHEMA,
-                "jsonschema",
-                format!(r#"{{"title":"{STATE_SCHEMA}","type":"object"}}"#).into_bytes(),
-            );
-            let state = self
-                .context
-                .channel_builder(topic("state"))
-                .message_encoding("json")
-                .schema(schema)
-                .build_raw()
-                .map_err(|e| PublishError::Foxglove(e.to_string()))?;
-            let channels = StreamChannels {
-                state,
-                transform: self.context.channel_builder(topic("transform")).build(),
-                points: self.context.channel_builder(topic("points")).build(),
-                scene: self.context.channel_builder(topic("scene")).build(),
-            };
-            self.streams.insert(stream.to_string(), channels);
+    /// (Re)starts the view's thread over `streams`' channels and those already declared.
+    fn declare(&mut self, streams: &[String]) -> Result<(), PublishError> {
+        self.stop_thread();
+        let mut channels = HashMap::new();
+        for (stream, declared) in Arc::try_unwrap(std::mem::take(&mut self.channels)).unwrap_or_default() {
+            channels.insert(stream, declared);
         }
-        Ok(&self.streams[stream])
+        for stream in streams {
+            if !channels.contains_key(stream) {
+                channels.insert(stream.clone(), StreamChannels::declare(&self.context, stream)?);
+            }
+        }
+        self.channels = Arc::new(channels);
+        let (queue, states) = crossbeam_channel::bounded::<(State, Option<Shape>)>(VIEW_QUEUE);
+        let (channels, frame_id, metres_per_unit) =
+            (self.channels.clone(), self.view.frame_id.clone(), self.metres_per_unit);
+        self.thread = Some(
+            std::thread::Builder::new()
+                .name("publish:foxglove".into())
+                .spawn(move || {
+                    for (state, shape) in states {
+                        if let Some(channels) = channels.get(&state.stream) {
+                            send(
+                                channels,
+                                &state,
+                                shape.as_deref().map(Vec::as_slice),
+                                &frame_id,
+                                metres_per_unit,
+                            );
+                        }
+                    }
+                })
+                .map_err(|e| PublishError::Foxglove(e.to_string()))?,
+        );
+        self.queue = Some(queue);
+        Ok(())
+    }
+
+    fn stop_thread(&mut self) {
+        self.queue = None;
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
     }
 
     fn publish_state(&mut self, state: &State) -> Result<(), PublishError> {
-        let json = serde_json::to_vec(state).map_err(|e| PublishError::Encode(e.to_string()))?;
-        let parent = self.settings.frame_id.clone();
-        let metres_per_unit = 1.0 / self.model_units_per_metre;
-        let channels = self.channels(&state.stream)?;
-        let stamp = state.stamps.sensor_ns.unwrap_or(state.stamps.ingest_ns);
-        let timestamp = Some(Timestamp::new(
-            (stamp / 1_000_000_000) as u32,
-            (stamp % 1_000_000_000) as u32,
-        ));
-        channels.state.log_with_meta(
-            &json,
-            foxglove::PartialMetadata {
-                log_time: Some(state.stamps.publish_ns),
-            },
-        );
-        if let Some(points) = &state.prepared {
-            let c = state.centre_m;
-            let data: Vec<u8> = points
-                .iter()
-                .flat_map(|p| (0..3).flat_map(move |a| (p[a] * metres_per_unit + c[a]).to_le_bytes()))
-                .collect();
-            let field = |name: &str, offset: u32| PackedElementField {
-                name: name.into(),
-                offset,
-                r#type: NumericType::Float32 as i32,
-            };
-            channels.points.log_with_time(
-                &PointCloud {
-                    timestamp,
-                    frame_id: parent.clone(),
-                    pose: None,
-                    point_stride: 12,
-                    fields: vec![field("x", 0), field("y", 4), field("z", 8)],
-                    data: data.into(),
-                },
-                state.stamps.publish_ns,
-            );
+        if !self.channels.contains_key(&state.stream) {
+            self.declare(&[state.stream.clone()])?;
         }
-        let frame = format!("gdvae/{}", state.stream);
-        let half = 0.5 * state.filtered.yaw as f64;
-        let c = state.centre_m;
-        channels.transform.log_with_time(
-            &FrameTransform {
-                timestamp,
-                parent_frame_id: parent,
-                child_frame_id: frame.clone(),
-                translation: Some(Vector3 {
-                    x: c[0] as f64,
-                    y: c[1] as f64,
-                    z: c[2] as f64,
-                }),
-                rotation: Some(Quaternion {
-                    x: 0.0,
-                    y: 0.0,
-                    z: half.sin(),
-                    w: half.cos(),
-                }),
-            },
-            state.stamps.publish_ns,
-        );
-        let at = |x: f64, z: f64| {
-            Some(Pose {
-                position: Some(Vector3 { x, y: 0.0, z }),
-                orientation: Some(Quaternion {
-                    x: 0.0,
-                    y: 0.0,
-                    z: 0.0,
-                    w: 1.0,
-                }),
-            })
-        };
-        let colour = if state.shape.inlier {
-            Color {
-                r: 0.1,
-                g: 0.8,
-                b: 0.3,
-                a: 1.0,
+        if !self.channels[&state.stream].watched() {
+            return Ok(());
+        }
+        let shape = self.shapes.as_ref().and_then(|s| s.shape_for(state));
+        let queue = self
+            .queue
+            .as_ref()
+            .expect("the view's thread runs while the sink is open");
+        if queue.try_send((state.clone(), shape)).is_err() {
+            self.dropped += 1;
+            if self.dropped == 1 || self.dropped % 1000 == 0 {
+                log::warn!(
+                    "Foxglove view: {} state(s) not shown so far (the view's thread could not keep up)",
+                    self.dropped
+                );
             }
-        } else {
-            Color {
-                r: 0.9,
-                g: 0.5,
-                b: 0.1,
-                a: 1.0,
-            }
-        };
-        channels.scene.log_with_time(
-            &SceneUpdate {
-                deletions: vec![],
-                entities: vec![SceneEntity {
-                    timestamp,
-                    frame_id: frame,
-                    id: state.stream.clone(),
-                    frame_locked: true,
-                    arrows: vec![ArrowPrimitive {
-                        pose: at(0.0, 0.0),
-                        shaft_length: 0.4,
-                        shaft_diameter: 0.03,
-                        head_length: 0.12,
-                        head_diameter: 0.08,
-                        color: Some(colour),
-                    }],
-                    texts: vec![TextPrimitive {
-                        pose: at(0.0, 0.5),
-                        billboard: true,
-                        font_size: 14.0,
-                        scale_invariant: true,
-                        color: Some(colour),
-                        text: format!(
-                            "{} identity {} ({}conf {:.2})",
-                            state.stream,
-                            state.shape.identity,
-                            if state.shape.inlier { "" } else { "outlier, " },
-                            state.shape.confidence
-                        ),
-                    }],
-                    ..Default::default()
-                }],
-            },
-            state.stamps.publish_ns,
-        );
+        }
         Ok(())
+    }
+}
+
+/// One state's messages on the channels a viewer subscribes to.
+fn send(channels: &StreamChannels, state: &State, shape: Option<&[[f32; 3]]>, frame_id: &str, metres_per_unit: f32) {
+    let log_time = state.stamps.publish_ns;
+    if channels.state.has_sinks() {
+        match serde_json::to_vec(state) {
+            Ok(json) => channels.state.log_with_meta(
+                &json,
+                foxglove::PartialMetadata {
+                    log_time: Some(log_time),
+                },
+            ),
+            Err(e) => log::warn!("Foxglove view: encoding a state: {e}"),
+        }
+    }
+    let scene = view::scene(state, shape, frame_id, metres_per_unit);
+    channels.transform.log_with_time(&scene.transform, log_time);
+    channels.scene.log_with_time(&scene.scene, log_time);
+    for (channel, cloud) in [
+        (&channels.input, &scene.input),
+        (&channels.points, &scene.points),
+        (&channels.shape, &scene.shape),
+    ] {
+        if let Some(cloud) = cloud {
+            channel.log_with_time(cloud, log_time);
+        }
     }
 }
 
@@ -265,6 +257,13 @@ impl Sink for FoxgloveSink {
     }
 
     fn flush(&mut self) -> Result<(), PublishError> {
+        self.stop_thread();
+        if self.dropped > 0 {
+            log::warn!(
+                "Foxglove view: {} state(s) were not shown (the view's thread could not keep up)",
+                self.dropped
+            );
+        }
         if let Some(server) = self.server.take() {
             // Waits for the server's tasks to end, so that the port is free when the run returns.
             server.stop().wait_blocking();

@@ -1,7 +1,9 @@
 //! The MCAP sink (`[publish] mcap = FILE`, or `--record FILE` on `run` and `replay`): every
 //! published message on its stream's channel (`/gdvae/<stream>/state`, `/events`, `/rejected`),
-//! JSON-encoded under a JSON schema named after the message's schema (`gdvae.state/1`, ...), so
-//! that a run opens afterwards in Foxglove or any MCAP reader, its fields ready to plot.
+//! JSON-encoded under a JSON schema named after the message's schema (`gdvae.state/1`, ...), and
+//! the view of each state (`view.rs`: `/transform`, `/input`, `/points`, `/shape`, `/scene`) in
+//! Foxglove's protobuf schemas, the same channels the live view sends; so that a run opens
+//! afterwards in Foxglove as it looked live, or in any MCAP reader, its fields ready to plot.
 //!
 //! Chunks are written whole: when one fills (256 KiB) and at least once a second, so a node
 //! killed mid-run leaves a file readable up to its last complete chunk (the node's own recording
@@ -9,13 +11,24 @@
 //! when the run ends. A write error closes the sink with one log line; the others go on and the
 //! run fails at its end.
 
+use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
 use std::io::BufWriter;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use foxglove::Encode;
+
+use super::shapes::ShapeWorker;
 use super::sink::{PublishError, Sink};
-use crate::state::{Output, Stamps, EVENT_SCHEMA, REJECTED_SCHEMA, STATE_SCHEMA};
+use super::view::{self, ViewSettings};
+use crate::state::{Output, Stamps, State, EVENT_SCHEMA, REJECTED_SCHEMA, STATE_SCHEMA};
+
+/// The JSON schema of one of the node's messages, as the recording and the live view declare it.
+pub fn json_schema(name: &str) -> Vec<u8> {
+    format!(r#"{{"title":"{name}","type":"object"}}"#).into_bytes()
+}
 
 /// A chunk is written at the latest this long after the previous one.
 const FLUSH_EVERY: Duration = Duration::from_secs(1);
@@ -24,15 +37,46 @@ const CHUNK_BYTES: u64 = 256 * 1024;
 pub struct McapSink {
     writer: Option<mcap::Writer<BufWriter<File>>>,
     path: String,
-    schemas: HashMap<&'static str, u16>,
+    /// Schema ids by name.
+    schemas: HashMap<String, u16>,
     /// Channel id and the next sequence number, by topic.
     channels: HashMap<String, (u16, u32)>,
     flushed: Instant,
     failed: Option<String>,
+    view: ViewSettings,
+    shapes: Option<Arc<ShapeWorker>>,
+    metres_per_unit: f32,
+    buffer: Vec<u8>,
+}
+
+/// A message's schema and encoding as the MCAP file declares them.
+struct Kind<'a> {
+    schema: Cow<'a, str>,
+    schema_encoding: &'a str,
+    schema_data: Cow<'a, [u8]>,
+    message_encoding: &'a str,
+}
+
+impl Kind<'static> {
+    fn json(schema: &'static str) -> Self {
+        Self {
+            schema: schema.into(),
+            schema_encoding: "jsonschema",
+            schema_data: json_schema(schema).into(),
+            message_encoding: "json",
+        }
+    }
 }
 
 impl McapSink {
-    pub fn create(path: &str) -> Result<Self, PublishError> {
+    /// Creates the file; `view`, `shapes` and `model_units_per_metre` say how each state's view
+    /// is drawn.
+    pub fn create(
+        path: &str,
+        view: &ViewSettings,
+        shapes: Option<Arc<ShapeWorker>>,
+        model_units_per_metre: f64,
+    ) -> Result<Self, PublishError> {
         let fail = |e: String| PublishError::Sink {
             path: path.to_string(),
             source: std::io::Error::other(e),
@@ -55,6 +99,10 @@ impl McapSink {
             channels: HashMap::new(),
             flushed: Instant::now(),
             failed: None,
+            view: view.clone(),
+            shapes,
+            metres_per_unit: 1.0 / model_units_per_metre as f32,
+            buffer: Vec::new(),
         })
     }
 
@@ -68,30 +116,75 @@ impl McapSink {
         message: &T,
     ) -> Result<(), PublishError> {
         let data = serde_json::to_vec(message).map_err(|e| PublishError::Encode(e.to_string()))?;
-        let topic = format!("/gdvae/{stream}/{kind}");
-        if let Err(e) = self.write_bytes(&topic, schema, stamps, &data) {
+        let topic = view::topic(stream, kind);
+        if let Err(e) = self.write_bytes(&topic, &Kind::json(schema), stamps, &data) {
             self.close(e.to_string());
         }
         Ok(())
     }
 
-    fn write_bytes(&mut self, topic: &str, schema: &'static str, stamps: &Stamps, data: &[u8]) -> mcap::McapResult<()> {
+    /// Writes one of the view's messages on `/gdvae/<stream>/<kind>` under Foxglove's schema.
+    fn write_view<T: Encode>(&mut self, stream: &str, kind: &str, stamps: &Stamps, message: &T) {
+        let Some(schema) = T::get_schema() else {
+            return;
+        };
+        let mut buffer = std::mem::take(&mut self.buffer);
+        buffer.clear();
+        if let Err(e) = message.encode(&mut buffer) {
+            log::warn!("MCAP sink {}: encoding {kind}: {e}", self.path);
+            return;
+        }
+        let kind_of = Kind {
+            schema: schema.name.into(),
+            schema_encoding: &schema.encoding,
+            schema_data: schema.data,
+            message_encoding: "protobuf",
+        };
+        if let Err(e) = self.write_bytes(&view::topic(stream, kind), &kind_of, stamps, &buffer) {
+            self.close(e.to_string());
+        }
+        self.buffer = buffer;
+    }
+
+    /// The view of `state`, as the Foxglove live view draws it.
+    fn write_scene(&mut self, state: &State) {
+        let shape = self.shapes.as_ref().and_then(|s| s.shape_for(state));
+        let scene = view::scene(
+            state,
+            shape.as_deref().map(Vec::as_slice),
+            &self.view.frame_id,
+            self.metres_per_unit,
+        );
+        let (stream, stamps) = (&state.stream, &state.stamps);
+        self.write_view(stream, "transform", stamps, &scene.transform);
+        for (kind, cloud) in [
+            ("input", &scene.input),
+            ("points", &scene.points),
+            ("shape", &scene.shape),
+        ] {
+            if let Some(cloud) = cloud {
+                self.write_view(stream, kind, stamps, cloud);
+            }
+        }
+        self.write_view(stream, "scene", stamps, &scene.scene);
+    }
+
+    fn write_bytes(&mut self, topic: &str, kind: &Kind, stamps: &Stamps, data: &[u8]) -> mcap::McapResult<()> {
         let Some(writer) = self.writer.as_mut() else {
             return Ok(());
-        };
-        let schema_id = match self.schemas.get(schema) {
-            Some(id) => *id,
-            None => {
-                let json_schema = format!(r#"{{"title":"{schema}","type":"object"}}"#);
-                let id = writer.add_schema(schema, "jsonschema", json_schema.as_bytes())?;
-                self.schemas.insert(schema, id);
-                id
-            }
         };
         let (channel_id, sequence) = match self.channels.get_mut(topic) {
             Some(channel) => channel,
             None => {
-                let id = writer.add_channel(schema_id, topic, "json", &BTreeMap::new())?;
+                let schema_id = match self.schemas.get(kind.schema.as_ref()) {
+                    Some(id) => *id,
+                    None => {
+                        let id = writer.add_schema(&kind.schema, kind.schema_encoding, &kind.schema_data)?;
+                        self.schemas.insert(kind.schema.to_string(), id);
+                        id
+                    }
+                };
+                let id = writer.add_channel(schema_id, topic, kind.message_encoding, &BTreeMap::new())?;
                 self.channels.entry(topic.to_string()).or_insert((id, 0))
             }
         };
@@ -130,6 +223,7 @@ impl Sink for McapSink {
                 if let Some(event) = state.event_message() {
                     self.write(&state.stream, "events", EVENT_SCHEMA, &state.stamps, &event)?;
                 }
+                self.write_scene(state);
                 Ok(())
             }
             Output::Rejected(r) => self.write(&r.stream, "rejected", REJECTED_SCHEMA, &r.stamps, r),

@@ -13,8 +13,12 @@ mod foxglove_sink;
 mod jsonl;
 mod mcap_sink;
 pub mod ros2;
+mod shapes;
 mod sink;
+mod view;
 mod zenoh_sink;
+
+use std::sync::Arc;
 
 use zenoh::Session;
 
@@ -29,6 +33,7 @@ pub use zenoh_sink::{encode, Format};
 
 pub use foxglove_sink::FoxgloveSettings;
 pub use ros2::Ros2Settings;
+pub use view::ViewSettings;
 
 #[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
@@ -44,6 +49,8 @@ pub struct PublishSettings {
     pub ros2: Ros2Settings,
     /// A Foxglove WebSocket server for a live view (`[publish.foxglove]`).
     pub foxglove: FoxgloveSettings,
+    /// What the live view and the MCAP recording show of each state (`[publish.view]`).
+    pub view: ViewSettings,
 }
 
 impl PublishSettings {
@@ -56,7 +63,37 @@ impl PublishSettings {
             return Err("publish.mcap must be a file path".into());
         }
         self.foxglove.validate()?;
+        self.view.validate()?;
         self.ros2.validate()
+    }
+
+    /// Whether a sink shows the view (the Foxglove live view or the MCAP recording).
+    fn shows_view(&self) -> bool {
+        self.foxglove.enabled || self.mcap.is_some()
+    }
+
+    /// How many points of each input cloud the sinks show (0: none, or no sink shows them).
+    pub fn input_points(&self) -> usize {
+        if self.shows_view() {
+            self.view.input_points
+        } else {
+            0
+        }
+    }
+
+    /// How often the sinks that draw the decoded shape want it renewed (0: none does).
+    fn shape_rate_hz(&self) -> f64 {
+        let view = if self.shows_view() {
+            self.view.shape_rate_hz
+        } else {
+            0.0
+        };
+        let ros2 = if self.ros2.enabled && self.ros2.markers {
+            self.ros2.shape_rate_hz
+        } else {
+            0.0
+        };
+        view.max(ros2)
     }
 }
 
@@ -69,6 +106,7 @@ impl Default for PublishSettings {
             mcap: None,
             ros2: Ros2Settings::default(),
             foxglove: FoxgloveSettings::default(),
+            view: ViewSettings::default(),
         }
     }
 }
@@ -95,11 +133,25 @@ impl Publisher {
         lossless: bool,
     ) -> Result<Self, PublishError> {
         let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
+        let units = bundle.manifest.units.model_units_per_metre;
+        // One decoder for every sink that draws the decoded shape.
+        let rate = settings.shape_rate_hz();
+        let shapes = if rate > 0.0 {
+            Some(Arc::new(shapes::ShapeWorker::start(bundle, onnxruntime, rate)?))
+        } else {
+            None
+        };
+        let view_shapes = shapes.clone().filter(|_| settings.view.shape_rate_hz > 0.0);
         if let Some(path) = settings.jsonl.as_deref() {
             sinks.push(Box::new(jsonl::JsonLines::create(path)?));
         }
         if let Some(path) = settings.mcap.as_deref() {
-            sinks.push(Box::new(mcap_sink::McapSink::create(path)?));
+            sinks.push(Box::new(mcap_sink::McapSink::create(
+                path,
+                &settings.view,
+                view_shapes.clone(),
+                units,
+            )?));
         }
         if settings.zenoh {
             let session = session
@@ -115,8 +167,10 @@ impl Publisher {
         if settings.foxglove.enabled {
             sinks.push(Box::new(foxglove_sink::FoxgloveSink::start(
                 &settings.foxglove,
+                &settings.view,
                 streams,
-                bundle.manifest.units.model_units_per_metre,
+                view_shapes,
+                units,
             )?));
         }
         if settings.ros2.enabled {
@@ -124,8 +178,7 @@ impl Publisher {
             sinks.push(Box::new(ros2::Ros2Sink::new(
                 &settings.ros2,
                 streams,
-                onnxruntime,
-                bundle,
+                shapes,
                 participants,
                 lossless,
             )?));

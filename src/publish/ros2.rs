@@ -12,17 +12,18 @@
 //! Every publisher has its liveliness token (and the node its own), data go on the exact key a ROS 2
 //! subscriber of the type uses, each sample with rmw_zenoh's attachment; tokens are withdrawn when
 //! the sink is dropped (shutdown). The decoded shape comes from the bundle's `decoder.onnx` on a
-//! thread of its own, at most `shape_rate_hz` per stream: never on the pipeline's hot path.
+//! thread of its own (`shapes.rs`), at most `shape_rate_hz` per stream: never on the pipeline's hot
+//! path, so a stream's first MarkerArray (sent before its first shape is decoded) has no shape
+//! marker, and every later one has the latest shape.
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::sync::Arc;
 
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
+use super::shapes::ShapeWorker;
 use super::sink::{PublishError, Sink};
-use crate::bundle::Bundle;
 use crate::ros2::graph::{self, EntityKind, MessageType, Qos};
 use crate::ros2::msg::{self, Header, Marker, Pose};
 pub use crate::ros2::Ros2Settings;
@@ -58,8 +59,6 @@ struct StreamTopics {
     state: Topic,
     events: Topic,
     rejected: Topic,
-    /// When the decoded shape was last asked for.
-    shape_asked: Option<Instant>,
 }
 
 pub struct Ros2Sink {
@@ -68,15 +67,14 @@ pub struct Ros2Sink {
     congestion: CongestionControl,
     tf: Option<Topic>,
     streams: HashMap<String, StreamTopics>,
-    shapes: Option<ShapeWorker>,
+    shapes: Option<Arc<ShapeWorker>>,
 }
 
 impl Ros2Sink {
     pub fn new(
         settings: &Ros2Settings,
         streams: &[String],
-        onnxruntime: Option<&std::path::Path>,
-        bundle: &Bundle,
+        shapes: Option<Arc<ShapeWorker>>,
         participants: &Participants,
         lossless: bool,
     ) -> Result<Self, PublishError> {
@@ -84,11 +82,7 @@ impl Ros2Sink {
         let participant = participants
             .join(settings.domain_id)
             .map_err(|e| PublishError::Ros2(format!("declaring the node's liveliness token: {e}")))?;
-        let shapes = if settings.markers && settings.shape_rate_hz > 0.0 {
-            Some(ShapeWorker::start(bundle, onnxruntime)?)
-        } else {
-            None
-        };
+        let shapes = shapes.filter(|_| settings.markers && settings.shape_rate_hz > 0.0);
         log::info!(
             "ROS 2: node {}/{} in domain {} (rmw_zenoh conventions of Jazzy, Kilted, Rolling)",
             settings.namespace.trim_end_matches('/'),
@@ -174,7 +168,6 @@ impl Ros2Sink {
                 state: self.declare(&state, &msg::STRING, qos)?,
                 events: self.declare(&events, &msg::STRING, qos)?,
                 rejected: self.declare(&rejected, &msg::STRING, qos)?,
-                shape_asked: None,
             };
             log::info!(
                 "ROS 2: publishing {}/*",
@@ -197,15 +190,11 @@ impl Ros2Sink {
             position: state.centre_m.map(f64::from),
             orientation: [x, y, z, w],
         };
-        let shape_rate = self.settings.shape_rate_hz;
         let child = format!("{}{}", self.settings.object_frame_prefix, state.stream);
         if let Some(tf) = self.tf.as_mut() {
             tf.put(msg::tf_message(&[(header, &child, pose)]))?;
         }
-        let shape = self
-            .shapes
-            .as_ref()
-            .map(|s| (s.latest(&state.stream), s.requests.clone()));
+        let shape = self.shapes.as_ref().and_then(|s| s.shape_for(state));
         let topics = self.stream(&state.stream)?;
         topics.pose.put(msg::pose_stamped(&header, &pose))?;
         topics.z_e.put(msg::float32_multi_array("z_e", &state.filtered.z_e))?;
@@ -217,32 +206,7 @@ impl Ros2Sink {
             topics.events.put(msg::string(&json))?;
         }
         if let Some(markers) = topics.markers.as_mut() {
-            let points = match shape {
-                Some((latest, requests)) => {
-                    let due = topics
-                        .shape_asked
-                        .is_none_or(|t| t.elapsed().as_secs_f64() * shape_rate >= 1.0);
-                    if due {
-                        // Dropped when the decoder is still busy: the next state asks again.
-                        let request = ShapeRequest {
-                            stream: state.stream.clone(),
-                            z_e: state.filtered.z_e.clone(),
-                            z_i: state.shape.z_i.clone(),
-                        };
-                        if requests.try_send(request).is_ok() {
-                            topics.shape_asked = Some(Instant::now());
-                        }
-                    }
-                    latest
-                }
-                None => None,
-            };
-            markers.put(marker_array(
-                state,
-                &header,
-                &pose,
-                points.as_deref().map(Vec::as_slice),
-            ))?;
+            markers.put(marker_array(state, &header, &pose, shape.as_deref().map(Vec::as_slice)))?;
         }
         Ok(())
     }
@@ -319,83 +283,6 @@ impl Sink for Ros2Sink {
                 let json = serde_json::to_string(rejected).map_err(|e| PublishError::Encode(e.to_string()))?;
                 self.stream(&rejected.stream)?.rejected.put(msg::string(&json))
             }
-        }
-    }
-}
-
-struct ShapeRequest {
-    stream: String,
-    z_e: Vec<f32>,
-    z_i: Vec<f32>,
-}
-
-type Shapes = Arc<Mutex<HashMap<String, Arc<Vec<[f32; 3]>>>>>;
-
-/// The decoder on its own thread: requests in (at most one waiting), the latest canonical shape
-/// per stream out (metres).
-struct ShapeWorker {
-    requests: crossbeam_channel::Sender<ShapeRequest>,
-    shapes: Shapes,
-    thread: Option<std::thread::JoinHandle<()>>,
-}
-
-impl ShapeWorker {
-    fn start(bundle: &Bundle, library: Option<&std::path::Path>) -> Result<Self, PublishError> {
-        let mut decoder = crate::runtime::ShapeDecoder::load(bundle, library)
-            .map_err(|e| PublishError::Ros2(format!("the shape markers need the bundle's decoder: {e}")))?;
-        let metres_per_unit = 1.0 / bundle.manifest.units.model_units_per_metre as f32;
-        let (requests, received) = crossbeam_channel::bounded::<ShapeRequest>(1);
-        let shapes: Shapes = Arc::default();
-        let thread = {
-            let shapes = shapes.clone();
-            std::thread::Builder::new()
-                .name("ros2:shapes".into())
-                .spawn(move || {
-                    let mut failures = 0u64;
-                    for request in received {
-                        match decoder.decode(&request.z_e, &request.z_i) {
-                            Ok(points) => {
-                                let points: Vec<[f32; 3]> =
-                                    points.iter().map(|p| p.map(|v| v * metres_per_unit)).collect();
-                                shapes
-                                    .lock()
-                                    .unwrap_or_else(|e| e.into_inner())
-                                    .insert(request.stream, Arc::new(points));
-                            }
-                            Err(e) => {
-                                failures += 1;
-                                if failures <= 3 || failures % 100 == 0 {
-                                    log::warn!("ROS 2 shape marker: decoding failed ({failures} so far): {e}");
-                                }
-                            }
-                        }
-                    }
-                })
-                .map_err(|e| PublishError::Ros2(e.to_string()))?
-        };
-        Ok(Self {
-            requests,
-            shapes,
-            thread: Some(thread),
-        })
-    }
-
-    fn latest(&self, stream: &str) -> Option<Arc<Vec<[f32; 3]>>> {
-        self.shapes
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .get(stream)
-            .cloned()
-    }
-}
-
-impl Drop for ShapeWorker {
-    fn drop(&mut self) {
-        // Closing the channel ends the thread after the request it is on.
-        let (closed, _) = crossbeam_channel::bounded(0);
-        drop(std::mem::replace(&mut self.requests, closed));
-        if let Some(thread) = self.thread.take() {
-            let _ = thread.join();
         }
     }
 }

@@ -15,6 +15,8 @@ pub enum PublishError {
     Ros2(String),
     #[error("Foxglove live view: {0}")]
     Foxglove(String),
+    #[error("decoded shape: {0}")]
+    Shape(String),
     #[error("every output has failed; the message is lost")]
     Closed,
 }

@@ -139,6 +139,7 @@ impl Outlet {
         dropped_non_finite: usize,
     ) -> bool {
         let dropped_non_finite = dropped_non_finite + crate::cloud::drop_implausible(&mut cloud.points, unit);
+        self.note_frame();
         let frame = Frame {
             stream: self.stream.clone(),
             sequence: self.next_sequence(),
@@ -172,18 +173,26 @@ impl Outlet {
         self.send(Ingest::Rejected(rejection))
     }
 
+    /// The next sequence number: every input takes one, a rejected one too (a gap in the states'
+    /// numbers is a rejection, published with that number).
     fn next_sequence(&mut self) -> u64 {
         let s = self.sequence;
         self.sequence += 1;
-        let counters = self.stats.stream(&self.stream);
-        counters.add_received();
+        self.stats.stream(&self.stream).add_received();
+        s
+    }
+
+    /// Notes a usable frame: after a silence longer than `feed_gap`, the feed has resumed (inputs
+    /// that are rejected do not resume it: a wrong-type sample after a pause is only a rejection).
+    fn note_frame(&mut self) {
         let now = Instant::now();
         if let (Some(gap), Some(last)) = (self.feed_gap, self.last_input) {
             let silent = now - last;
             if silent > gap {
+                let counters = self.stats.stream(&self.stream);
                 counters.add_feed_gap(silent);
                 log::warn!(
-                    "{}: the feed resumed after {:.1} s without input ({} gap(s) so far)",
+                    "{}: the feed resumed after {:.1} s without a usable frame ({} gap(s) so far)",
                     self.stream,
                     silent.as_secs_f64(),
                     counters.feed_gaps()
@@ -191,7 +200,6 @@ impl Outlet {
             }
         }
         self.last_input = Some(now);
-        s
     }
 
     fn send(&self, item: Ingest) -> bool {

@@ -3,10 +3,11 @@
 //! depth `sensor_msgs/msg/Image` unprojected with the latest `CameraInfo` of `camera_info_topic`.
 //!
 //! It subscribes on the topic's key with any type and any type hash (a Humble, Jazzy or Rolling
-//! publisher computes its own), and watches the graph's liveliness for the topic's publishers: for
-//! each type and hash one advertises, it declares a matching subscription token (MS), so that a
-//! publisher that waits for subscribers starts sending; only for the types it reads (PointCloud2,
-//! Image; CameraInfo on the info topic). Each sample must carry rmw_zenoh's
+//! publisher computes its own) and declares its subscription token (MS) of the configured type
+//! (`message_type`) at once; then it watches the graph's liveliness for the topic's publishers:
+//! for each other type and hash one advertises, it declares a matching token, so that a publisher
+//! that waits for subscribers starts sending; only for the types it reads (PointCloud2, Image;
+//! CameraInfo on the info topic). Each sample must carry rmw_zenoh's
 //! attachment; a sample of another type, or without a valid attachment, is a counted rejection.
 
 use std::sync::{Arc, Mutex};
@@ -35,6 +36,21 @@ pub struct Ros2TopicSettings {
     /// The ROS 2 domain (default: `[publish.ros2] domain_id`).
     #[serde(default)]
     pub domain_id: Option<u32>,
+    /// The type the topic carries, whose subscription is declared when the node starts (so that
+    /// `ros2 node info` shows it before any publisher exists): "sensor_msgs/msg/PointCloud2" (the
+    /// default) or "sensor_msgs/msg/Image". Either is read whatever this says.
+    #[serde(default)]
+    pub message_type: InputType,
+}
+
+/// The message a ROS 2 input topic carries.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+pub enum InputType {
+    #[default]
+    #[serde(rename = "sensor_msgs/msg/PointCloud2")]
+    PointCloud2,
+    #[serde(rename = "sensor_msgs/msg/Image")]
+    Image,
 }
 
 /// A ROS 2 topic name: segments of letters, digits and underscores, not starting with a digit.
@@ -67,7 +83,7 @@ impl Ros2TopicSettings {
 
 /// The subscriptions of one ROS 2 source; they end when it is dropped.
 pub struct Ros2Subscription {
-    _data: zenoh::pubsub::Subscriber<()>,
+    _data: Vec<zenoh::pubsub::Subscriber<()>>,
     _camera_info: zenoh::pubsub::Subscriber<()>,
     _publishers: zenoh::pubsub::Subscriber<()>,
     _tokens: Arc<Mutex<Vec<(String, zenoh::liveliness::LivelinessToken)>>>,
@@ -112,33 +128,47 @@ pub fn subscribe(
             .wait()?
     };
 
-    let data = {
+    // The classic data key, and a buffer-aware publisher's CPU key (`<key>/_buf_cpu`, rmw_zenoh
+    // 0.10.5 on: the same CDR, sent there only while every subscriber it matches is
+    // buffer-aware). Its per-subscriber keys (`<key>/_buf/<gid>`) are for others.
+    let outlet = Arc::new(Mutex::new(outlet));
+    let mut data = Vec::new();
+    for suffix in ["", "/_buf_cpu"] {
         let (max_points, depth_step, unit) = (
             intake.max_points,
             settings.depth_step,
             intake.unit.unwrap_or(Unit::Metre),
         );
-        let outlet = Mutex::new(outlet);
-        let topic = topic.clone();
-        session
-            .declare_subscriber(format!("{domain}/{}/*/*", topic.trim_matches('/')))
-            .callback(move |sample: Sample| {
-                let decoded = decode(&sample, &intrinsics, max_points, depth_step);
-                let Ok(mut outlet) = outlet.lock() else { return };
-                match decoded {
-                    Ok((stamp, points, dropped)) => {
-                        outlet.frame(PointCloud { points }, unit, Some(stamp), dropped);
+        let (outlet, intrinsics, topic) = (outlet.clone(), intrinsics.clone(), topic.clone());
+        data.push(
+            session
+                .declare_subscriber(format!("{domain}/{}/*/*{suffix}", topic.trim_matches('/')))
+                .callback(move |sample: Sample| {
+                    let decoded = decode(&sample, &intrinsics, max_points, depth_step);
+                    let Ok(mut outlet) = outlet.lock() else { return };
+                    match decoded {
+                        Ok((stamp, points, dropped)) => {
+                            outlet.frame(PointCloud { points }, unit, Some(stamp), dropped);
+                        }
+                        Err(reason) => {
+                            outlet.reject(format!("ROS 2 sample on {topic}: {reason}"), None);
+                        }
                     }
-                    Err(reason) => {
-                        outlet.reject(format!("ROS 2 sample on {topic}: {reason}"), None);
-                    }
-                }
-            })
-            .wait()?
-    };
+                })
+                .wait()?,
+        );
+    }
 
-    // Subscription tokens, one per (topic, type, hash) a publisher advertises.
+    // Subscription tokens: the configured type's now (Jazzy's hash), then one per other (topic,
+    // type, hash) a publisher advertises.
     let tokens: Arc<Mutex<Vec<(String, zenoh::liveliness::LivelinessToken)>>> = Arc::default();
+    let expected: &[(&str, &graph::MessageType)] = match settings.message_type {
+        InputType::PointCloud2 => &[(&topic, &msg::POINT_CLOUD2)],
+        InputType::Image => &[(&topic, &msg::IMAGE), (&info_topic, &msg::CAMERA_INFO)],
+    };
+    for (topic, message) in expected {
+        declare_subscription(&participant, &tokens, topic, &message.dds_name(), message.hash);
+    }
     let publishers = {
         let (tokens, participant) = (tokens.clone(), participant.clone());
         let watched = [graph::mangle(&topic), graph::mangle(&info_topic)];
@@ -167,32 +197,7 @@ pub fn subscribe(
                 if !reads {
                     return;
                 }
-                let id = format!("{topic} {dds_type} {hash}");
-                let mut tokens = tokens.lock().unwrap_or_else(|e| e.into_inner());
-                if tokens.iter().any(|(known, _)| *known == id) {
-                    return;
-                }
-                // Best effort, keep last 10: compatible with any publisher's reliability.
-                let qos = Qos {
-                    reliable: false,
-                    transient_local: false,
-                    depth: 10,
-                };
-                let token_key = participant.node().entity_token_of(
-                    EntityKind::Subscription,
-                    participant.next_id(),
-                    &topic,
-                    dds_type,
-                    hash,
-                    &qos,
-                );
-                match participant.session().liveliness().declare_token(token_key).wait() {
-                    Ok(token) => {
-                        log::info!("ROS 2: subscribed to {topic} ({dds_type})");
-                        tokens.push((id, token));
-                    }
-                    Err(e) => log::warn!("ROS 2: declaring a subscription token for {topic}: {e}"),
-                }
+                declare_subscription(&participant, &tokens, &topic, dds_type, hash);
             })
             .wait()?
     };
@@ -203,6 +208,42 @@ pub fn subscribe(
         _publishers: publishers,
         _tokens: tokens,
     })
+}
+
+/// Declares the node's subscription to `topic` of a type (DDS name and hash), unless it has one.
+fn declare_subscription(
+    participant: &Participant,
+    tokens: &Mutex<Vec<(String, zenoh::liveliness::LivelinessToken)>>,
+    topic: &str,
+    dds_type: &str,
+    hash: &str,
+) {
+    let id = format!("{topic} {dds_type} {hash}");
+    let mut tokens = tokens.lock().unwrap_or_else(|e| e.into_inner());
+    if tokens.iter().any(|(known, _)| *known == id) {
+        return;
+    }
+    // Best effort, keep last 10: compatible with any publisher's reliability.
+    let qos = Qos {
+        reliable: false,
+        transient_local: false,
+        depth: 10,
+    };
+    let token_key = participant.node().entity_token_of(
+        EntityKind::Subscription,
+        participant.next_id(),
+        topic,
+        dds_type,
+        hash,
+        &qos,
+    );
+    match participant.session().liveliness().declare_token(token_key).wait() {
+        Ok(token) => {
+            log::info!("ROS 2: subscribed to {topic} ({dds_type})");
+            tokens.push((id, token));
+        }
+        Err(e) => log::warn!("ROS 2: declaring a subscription token for {topic}: {e}"),
+    }
 }
 
 fn attachment_bytes(sample: &Sample) -> Vec<u8> {
@@ -218,6 +259,7 @@ fn decode(
 ) -> Result<(u64, Vec<[f32; 3]>, usize), String> {
     graph::parse_attachment(&attachment_bytes(sample))?;
     let key = sample.key_expr().as_str();
+    let key = key.strip_suffix("/_buf_cpu").unwrap_or(key);
     let dds_type = key.rsplit('/').nth(1).unwrap_or("");
     let payload = sample.payload().to_bytes();
     if dds_type == msg::POINT_CLOUD2.dds_name() {

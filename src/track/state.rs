@@ -90,6 +90,7 @@ impl StreamTracker {
                 identity: c.identity,
             }),
             prepared: None,
+            input: None,
         }
     }
 }

@@ -409,7 +409,10 @@ fn a_live_feed_that_goes_silent_and_returns_resumes_and_the_gap_is_counted() {
         std::thread::sleep(Duration::from_millis(100));
     }
     assert!(wait_until(Duration::from_secs(30), || published() == 4));
-    std::thread::sleep(Duration::from_millis(2500));
+    // Halfway through, one sample that is not a cloud: a rejection, not the feed resuming.
+    std::thread::sleep(Duration::from_millis(1500));
+    publisher.put(b"not a point cloud".to_vec()).wait().unwrap();
+    std::thread::sleep(Duration::from_millis(1000));
     for cloud in &clouds[4..] {
         publisher.put(cloud.clone()).wait().unwrap();
         std::thread::sleep(Duration::from_millis(100));
@@ -424,7 +427,8 @@ fn a_live_feed_that_goes_silent_and_returns_resumes_and_the_gap_is_counted() {
     let counters = &summary.snapshot.streams["cam"];
     assert_eq!(counters.feed_gaps, 1, "{counters:?}");
     assert!(counters.feed_gap_s >= 2.4 && counters.feed_gap_s < 10.0, "{counters:?}");
-    assert_eq!((counters.received, counters.dropped), (8, 0));
+    assert_eq!((counters.received, counters.dropped), (9, 0));
+    assert_eq!(counters.rejected, BTreeMap::from([("source".to_string(), 1)]));
 }
 
 #[test]

@@ -18,7 +18,8 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from node_paths import NODE, ROOT, free_port, sample_settings
 
 TOPICS = {"/gdvae/cam/state": "gdvae.state/1", "/gdvae/cam/transform": "foxglove.FrameTransform",
-          "/gdvae/cam/points": "foxglove.PointCloud", "/gdvae/cam/scene": "foxglove.SceneUpdate"}
+          "/gdvae/cam/input": "foxglove.PointCloud", "/gdvae/cam/points": "foxglove.PointCloud",
+          "/gdvae/cam/shape": "foxglove.PointCloud", "/gdvae/cam/scene": "foxglove.SceneUpdate"}
 
 
 def decoder(channel):
@@ -30,6 +31,13 @@ def decoder(channel):
     for file in files.file:
         pool.Add(file)
     return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"])).FromString
+
+
+def xyz_of(cloud):
+    """A foxglove.PointCloud's points (x, y, z float32 at stride 12) as tuples."""
+    assert [f.name for f in cloud.fields] == ["x", "y", "z"] and cloud.point_stride == 12
+    xyz = struct.unpack(f"<{len(cloud.data) // 4}f", cloud.data)
+    return [xyz[i:i + 3] for i in range(0, len(xyz), 3)]
 
 
 async def watch(port, wanted):
@@ -57,7 +65,7 @@ async def watch(port, wanted):
         return channels, received
 
 
-def test_a_foxglove_client_receives_the_states_the_object_frame_and_the_scene(tmp_path):
+def test_a_foxglove_client_receives_the_states_the_object_frame_the_clouds_and_the_scene(tmp_path):
     port, jsonl = free_port(), tmp_path / "states.jsonl"
     config = tmp_path / "node.toml"
     config.write_text(f"""{sample_settings()}
@@ -115,13 +123,29 @@ repeat = true
         state = states[stamp]
         assert cloud.frame_id == "gravity" and cloud.point_stride == 12
         assert [f.name for f in cloud.fields] == ["x", "y", "z"]
-        xyz = struct.unpack(f"<{len(cloud.data) // 4}f", cloud.data)
-        points = [xyz[i:i + 3] for i in range(0, len(xyz), 3)]
+        points = xyz_of(cloud)
         assert len(points) == 256
         for axis in range(3):
             low, high = min(p[axis] for p in points), max(p[axis] for p in points)
             assert abs((low + high) / 2 - state["centre_m"][axis]) < 1e-3
             assert 0.05 < high - low < 3.0, "an object's size in metres"
+    # The input cloud, decimated to at most [publish.view] input_points, in the gravity frame: the
+    # object's centre lies inside its box.
+    for _, cloud in received["/gdvae/cam/input"]:
+        state = states[cloud.timestamp.seconds * 1_000_000_000 + cloud.timestamp.nanos]
+        points = xyz_of(cloud)
+        assert cloud.frame_id == "gravity" and 500 < len(points) <= 2048
+        for axis in range(3):
+            assert min(p[axis] for p in points) - 1e-3 <= state["centre_m"][axis] <= max(p[axis] for p in points) + 1e-3
+    # The decoded shape: placed at the estimated centre and rotation, an object's size.
+    for _, cloud in received["/gdvae/cam/shape"]:
+        state = states[cloud.timestamp.seconds * 1_000_000_000 + cloud.timestamp.nanos]
+        position, q = cloud.pose.position, cloud.pose.orientation
+        assert all(abs(a - b) < 1e-5 for a, b in zip([position.x, position.y, position.z], state["centre_m"]))
+        assert all(abs(a - b) < 1e-5 for a, b in zip([q.w, q.x, q.y, q.z], state["filtered"]["q"]))
+        points = xyz_of(cloud)
+        assert len(points) >= 256
+        assert 0.05 < max(max(p) - min(p) for p in zip(*points)) < 3.0, "an object's size in metres"
     # The scene: a heading arrow and the identity's label in that frame.
     for _, scene in received["/gdvae/cam/scene"]:
         entity = scene.entities[0]

@@ -274,6 +274,14 @@ key = "{DOMAIN}/lidar/points/sensor_msgs::msg::dds_::PointCloud2_/*"
                 outputs = [e for e in outputs if e["topic"].startswith("/gdvae/cam/")]
             assert sorted(e["topic"] for e in outputs) == sorted(
                 f"/gdvae/cam/{what}" for what in ["pose", "z_e", "z_i", "state", "events", "rejected"]), outputs
+            # And so is its input subscription, of the configured type (PointCloud2 by default).
+            deadline = time.monotonic() + 30
+            inputs = []
+            while not inputs and time.monotonic() < deadline:
+                inputs = [parse_token(str(r.ok.key_expr)) for r in session.liveliness().get(
+                    f"@ros2_lv/{DOMAIN}/*/*/*/MS/*/*/*/%camera%depth%points/**", timeout=1.0) if r.ok is not None]
+            assert [(e["type"], e["hash"]) for e in inputs] == [
+                (dds_name(cloud_type), STORE.hash_rihs01(cloud_type))], inputs
             # A publisher of a type the node does not read on its input topic gets no subscription.
             wrong_type = "std_msgs/msg/String"
             wrong_token = session.liveliness().declare_token(
@@ -293,7 +301,8 @@ key = "{DOMAIN}/lidar/points/sensor_msgs::msg::dds_::PointCloud2_/*"
             assert matched, "the node declared a subscription token for the topic"
             subscriptions = [parse_token(str(r.ok.key_expr)) for r in session.liveliness().get(
                 f"@ros2_lv/{DOMAIN}/*/*/*/MS/*/*/*/%camera%depth%points/**", timeout=1.0) if r.ok is not None]
-            assert {e["type"] for e in subscriptions} == {dds_name(cloud_type)}, subscriptions
+            assert [e["type"] for e in subscriptions] == [dds_name(cloud_type)], "one subscription, of the type read"
+
             wrong_token.undeclare()
             subscription = parse_token(matched[0])
             assert subscription["node"] == "listener" and subscription["hash"] == STORE.hash_rihs01(cloud_type)
@@ -309,13 +318,17 @@ key = "{DOMAIN}/lidar/points/sensor_msgs::msg::dds_::PointCloud2_/*"
                         bytes(STORE.serialize_cdr(STORE.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String")),
                         attachment=zenoh.ext.z_serialize((zenoh.ext.Int64(99), zenoh.ext.Int64(0), gid)))
             publisher.put(clouds[0], attachment=b"\x01\x02\x03")
+            # A buffer-aware publisher's CPU key (rmw_zenoh 0.10.5 on, when every subscriber is
+            # buffer-aware): the same CDR and attachment, on <key>/_buf_cpu.
+            session.put(ros_key("/camera/depth/points", cloud_type) + "/_buf_cpu", clouds[2],
+                        attachment=zenoh.ext.z_serialize((zenoh.ext.Int64(100), zenoh.ext.Int64(time.time_ns()), gid)))
             # A plain zenoh source under format "auto" takes rmw_zenoh's encoding-less samples.
             session.put(f"{DOMAIN}/lidar/points/{dds_name(cloud_type)}/{STORE.hash_rihs01(cloud_type)}", clouds[1])
             deadline = time.monotonic() + 60
             lines = []
             while time.monotonic() < deadline:
                 lines = [json.loads(l) for l in jsonl.read_text().splitlines()] if jsonl.exists() else []
-                if sum(1 for l in lines if l["stream"] == "cam") >= len(clouds) + 2 and \
+                if sum(1 for l in lines if l["stream"] == "cam") >= len(clouds) + 3 and \
                         any(l["stream"] == "raw" for l in lines):
                     break
                 time.sleep(0.1)
@@ -330,12 +343,12 @@ key = "{DOMAIN}/lidar/points/sensor_msgs::msg::dds_::PointCloud2_/*"
     cam = [l for l in lines if l["stream"] == "cam"]
     states = [l for l in cam if l["schema"] == "gdvae.state/1"]
     rejected = [l for l in cam if l["schema"] == "gdvae.rejected/1"]
-    assert len(states) == len(clouds), (len(states), [r["reason"] for r in rejected])
-    assert [s["stamps"]["sensor_ns"] for s in states] == sorted(s["stamps"]["sensor_ns"] for s in states)
+    assert len(states) == len(clouds) + 1, (len(states), [r["reason"] for r in rejected])
+    assert [s["stamps"]["sensor_ns"] for s in states[:-1]] == sorted(s["stamps"]["sensor_ns"] for s in states[:-1])
     reasons = [r["reason"] for r in rejected]
     assert len(reasons) == 2, reasons
     assert any("std_msgs::msg::dds_::String_" in r and "is not one the node reads" in r for r in reasons), reasons
     assert any("attachment" in r for r in reasons), reasons
     assert [l["schema"] for l in lines if l["stream"] == "raw"] == ["gdvae.state/1"]
     row = next(l for l in out.decode().splitlines() if l.strip().startswith("cam "))
-    assert f"{len(clouds) + 2} received" in " ".join(row.split()), row
+    assert f"{len(clouds) + 3} received" in " ".join(row.split()), row
