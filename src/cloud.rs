@@ -47,6 +47,9 @@ pub struct Frame {
     pub ingest_unix_ns: u64,
     pub unit: Unit,
     pub cloud: PointCloud,
+    /// The sensor's frame the points are in (a ROS message header's `frame_id`), when the input
+    /// names one.
+    pub sensor_frame: Option<std::sync::Arc<str>>,
 }
 
 /// Farthest a measured point can plausibly be (metres): no range sensor reports beyond this. A

@@ -304,6 +304,7 @@ fn encode(args: EncodeArgs) -> Result<()> {
         cloud: PointCloud {
             points: read.cloud.points,
         },
+        sensor_frame: None,
     };
     let preparer = Preparer::new(
         &config.prepare,

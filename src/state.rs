@@ -120,6 +120,10 @@ pub struct State {
     /// (`[publish.view] input_points`); not part of the published message.
     #[serde(skip)]
     pub input: Option<std::sync::Arc<Vec<[f32; 3]>>>,
+    /// The sensor frame the input named (a ROS header's `frame_id`), for the ROS 2 sink's
+    /// `/tf_static`; not part of the published message.
+    #[serde(skip)]
+    pub sensor_frame: Option<std::sync::Arc<str>>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -58,6 +58,7 @@ fuzz_target!(|data: &[u8]| {
         ingest_unix_ns: 0,
         unit: Unit::Metre,
         cloud: PointCloud { points },
+        sensor_frame: None,
     };
     if let Ok(prepared) = preparer.prepare(&frame) {
         assert_eq!(prepared.points.len(), 64);

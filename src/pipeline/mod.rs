@@ -268,6 +268,10 @@ pub fn run(
         )?);
     }
     let streams: Vec<String> = config.sources.iter().map(|s| s.stream.clone()).collect();
+    let sensor_poses = streams
+        .iter()
+        .filter_map(|s| preparer.sensor_pose(s).map(|pose| (s.clone(), pose)))
+        .collect();
     let mut publisher = Publisher::new(
         &config.publish,
         &streams,
@@ -276,6 +280,7 @@ pub fn run(
         bundle,
         session.clone(),
         participants.as_ref(),
+        &sensor_poses,
         options.lossless_publish,
     )?;
 

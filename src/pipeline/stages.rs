@@ -289,6 +289,7 @@ pub(super) fn track(
                         Ok(mut state) => {
                             state.prepared = Some(std::sync::Arc::new(std::mem::take(&mut frame.prepared.points)));
                             state.input = frame.prepared.input.take().map(std::sync::Arc::new);
+                            state.sensor_frame = frame.origin.sensor_frame.clone();
                             Output::State(Box::new(state))
                         }
                         Err(message) => {

@@ -17,6 +17,7 @@ pub(super) struct Origin {
     pub(super) ingested: Instant,
     pub(super) ingest_unix_ns: u64,
     pub(super) points_received: usize,
+    pub(super) sensor_frame: Option<std::sync::Arc<str>>,
 }
 
 pub(super) struct PreparedFrame {
@@ -73,5 +74,6 @@ pub(super) fn origin_of(frame: &crate::cloud::Frame) -> Origin {
         ingested: frame.ingested,
         ingest_unix_ns: frame.ingest_unix_ns,
         points_received: frame.cloud.len(),
+        sensor_frame: frame.sensor_frame.clone(),
     }
 }

@@ -108,6 +108,16 @@ impl Preparer {
         }
     }
 
+    /// The sensor pose of `stream` (rotation, translation: sensor -> gravity frame), when it is a
+    /// constant of the configuration; None when the ground plane levels each frame.
+    pub fn sensor_pose(&self, stream: &str) -> Option<([[f32; 3]; 3], [f32; 3])> {
+        if self.settings.auto_ground {
+            return None;
+        }
+        let (rotation, translation) = self.per_stream.get(stream).unwrap_or(&self.sensor_to_gravity);
+        Some((std::array::from_fn(|i| std::array::from_fn(|j| rotation[(i, j)])), (*translation).into()))
+    }
+
     /// Keeps a copy of each frame's input decimated to at most `points` points (every k-th), for
     /// the sinks that show it (0: none).
     pub fn showing_input(mut self, points: usize) -> Self {

@@ -121,7 +121,9 @@ impl Publisher {
     /// on congestion (replay) instead of dropping (live). `session`: the node's zenoh session, when
     /// one is open; `participants`: the node in ROS 2 domains (on that session); `onnxruntime`: the
     /// library the ROS 2 sink's shape decoder loads (`[model] onnxruntime`); `streams`: the
-    /// configured streams, whose ROS 2 topics are declared at once (before their first frame).
+    /// configured streams, whose ROS 2 topics are declared at once (before their first frame);
+    /// `sensor_poses`: each stream's sensor -> gravity pose where the configuration fixes it (the
+    /// ROS 2 sink's /tf_static).
     pub fn new(
         settings: &PublishSettings,
         streams: &[String],
@@ -130,6 +132,7 @@ impl Publisher {
         bundle: &Bundle,
         session: Option<Session>,
         participants: Option<&crate::ros2::Participants>,
+        sensor_poses: &std::collections::HashMap<String, ([[f32; 3]; 3], [f32; 3])>,
         lossless: bool,
     ) -> Result<Self, PublishError> {
         let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
@@ -179,6 +182,7 @@ impl Publisher {
                 &settings.ros2,
                 streams,
                 shapes,
+                sensor_poses,
                 participants,
                 lossless,
             )?));

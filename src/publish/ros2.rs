@@ -50,6 +50,38 @@ impl Topic {
     }
 }
 
+/// `/tf_static`: declared as rmw_zenoh declares a reliable TRANSIENT_LOCAL publisher (an
+/// AdvancedPublisher with a cache of one sample, sample-miss detection on a sporadic 500 ms
+/// heartbeat, publisher detection), so that a TF listener that starts later (rviz2, tf2_echo)
+/// still receives the last message. Each message holds every stream's sensor frame, as tf2's
+/// static broadcaster republishes all its transforms.
+struct StaticTf {
+    publisher: zenoh_ext::AdvancedPublisher<'static>,
+    _token: zenoh::liveliness::LivelinessToken,
+    gid: [u8; 16],
+    sequence: i64,
+    /// Per stream: the sensor frame its clouds name and the configured sensor pose.
+    frames: std::collections::BTreeMap<String, (Arc<str>, Pose)>,
+}
+
+impl StaticTf {
+    fn put(&mut self, parent: &str) -> Result<(), PublishError> {
+        self.sequence += 1;
+        let now = crate::sources::unix_now_ns();
+        let header = Header {
+            stamp_ns: now,
+            frame_id: parent,
+        };
+        let transforms: Vec<(Header, &str, Pose)> =
+            self.frames.values().map(|(child, pose)| (header, &**child, *pose)).collect();
+        self.publisher
+            .put(msg::tf_message(&transforms))
+            .attachment(graph::attachment(self.sequence, now as i64, &self.gid).to_vec())
+            .wait()
+            .map_err(|e| PublishError::Ros2(format!("/tf_static: {e}")))
+    }
+}
+
 /// The topics of one stream.
 struct StreamTopics {
     pose: Topic,
@@ -66,6 +98,9 @@ pub struct Ros2Sink {
     participant: Arc<Participant>,
     congestion: CongestionControl,
     tf: Option<Topic>,
+    tf_static: Option<StaticTf>,
+    /// Each stream's sensor pose (sensor -> gravity frame), where the configuration fixes it.
+    sensor_poses: HashMap<String, Pose>,
     streams: HashMap<String, StreamTopics>,
     shapes: Option<Arc<ShapeWorker>>,
 }
@@ -75,6 +110,7 @@ impl Ros2Sink {
         settings: &Ros2Settings,
         streams: &[String],
         shapes: Option<Arc<ShapeWorker>>,
+        sensor_poses: &HashMap<String, ([[f32; 3]; 3], [f32; 3])>,
         participants: &Participants,
         lossless: bool,
     ) -> Result<Self, PublishError> {
@@ -98,6 +134,8 @@ impl Ros2Sink {
                 CongestionControl::Drop
             },
             tf: None,
+            tf_static: None,
+            sensor_poses: sensor_poses.iter().map(|(s, p)| (s.clone(), sensor_pose(p))).collect(),
             streams: HashMap::new(),
             shapes,
         };
@@ -108,6 +146,9 @@ impl Ros2Sink {
                 depth: 100,
             };
             sink.tf = Some(sink.declare("/tf", &msg::TF_MESSAGE, qos)?);
+        }
+        if sink.settings.tf_static {
+            sink.tf_static = Some(sink.declare_static_tf()?);
         }
         // Every configured stream's topics now, so that `ros2 topic list` and `ros2 node info`
         // show them before the sensor starts (a stream that appears later gets its own then).
@@ -137,6 +178,60 @@ impl Ros2Sink {
             gid: graph::gid(&token_key),
             sequence: 0,
         })
+    }
+
+    fn declare_static_tf(&mut self) -> Result<StaticTf, PublishError> {
+        use zenoh_ext::{AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
+        let qos = Qos {
+            reliable: true,
+            transient_local: true,
+            depth: 1,
+        };
+        let (node, session) = (self.participant.node(), self.participant.session());
+        let message = &msg::TF_MESSAGE;
+        let token_key = node.entity_token(EntityKind::Publisher, self.participant.next_id(), "/tf_static", message, &qos);
+        let error = |e: zenoh::Error| PublishError::Ros2(format!("declaring /tf_static: {e}"));
+        let token = session
+            .liveliness()
+            .declare_token(token_key.clone())
+            .wait()
+            .map_err(error)?;
+        let publisher = session
+            .declare_publisher(graph::topic_key(node.domain, "/tf_static", message))
+            .congestion_control(CongestionControl::Drop)
+            .reliability(zenoh::qos::Reliability::Reliable)
+            .cache(CacheConfig::default().max_samples(1))
+            .sample_miss_detection(MissDetectionConfig::default().sporadic_heartbeat(std::time::Duration::from_millis(500)))
+            .publisher_detection()
+            .wait()
+            .map_err(error)?;
+        Ok(StaticTf {
+            publisher,
+            _token: token,
+            gid: graph::gid(&token_key),
+            sequence: 0,
+            frames: Default::default(),
+        })
+    }
+
+    /// Publishes `state`'s sensor frame on /tf_static when its stream names a new one.
+    fn static_tf(&mut self, state: &State) -> Result<(), PublishError> {
+        let (Some(tf_static), Some(frame)) = (self.tf_static.as_mut(), state.sensor_frame.as_ref()) else {
+            return Ok(());
+        };
+        if tf_static.frames.get(&state.stream).is_some_and(|(known, _)| known == frame) {
+            return Ok(());
+        }
+        let Some(pose) = self.sensor_poses.get(&state.stream) else {
+            return Ok(());
+        };
+        log::info!(
+            "ROS 2: /tf_static {} -> {frame} (stream '{}', its configured sensor pose)",
+            self.settings.frame_id,
+            state.stream
+        );
+        tf_static.frames.insert(state.stream.clone(), (frame.clone(), *pose));
+        tf_static.put(&self.settings.frame_id)
     }
 
     fn stream(&mut self, stream: &str) -> Result<&mut StreamTopics, PublishError> {
@@ -194,6 +289,7 @@ impl Ros2Sink {
         if let Some(tf) = self.tf.as_mut() {
             tf.put(msg::tf_message(&[(header, &child, pose)]))?;
         }
+        self.static_tf(state)?;
         let shape = self.shapes.as_ref().and_then(|s| s.shape_for(state));
         let topics = self.stream(&state.stream)?;
         topics.pose.put(msg::pose_stamped(&header, &pose))?;
@@ -209,6 +305,17 @@ impl Ros2Sink {
             markers.put(marker_array(state, &header, &pose, shape.as_deref().map(Vec::as_slice)))?;
         }
         Ok(())
+    }
+}
+
+/// A sensor pose (rotation matrix, translation: sensor -> gravity) as the pose of the sensor's
+/// frame in the gravity frame.
+fn sensor_pose((rotation, translation): &([[f32; 3]; 3], [f32; 3])) -> Pose {
+    let matrix = nalgebra::Matrix3::from_fn(|i, j| f64::from(rotation[i][j]));
+    let q = nalgebra::UnitQuaternion::from_matrix(&matrix);
+    Pose {
+        position: translation.map(f64::from),
+        orientation: [q.i, q.j, q.k, q.w],
     }
 }
 

@@ -28,6 +28,10 @@ pub struct Ros2Settings {
     pub depth: usize,
     /// Also publish on /tf (reliable, keep last 100, as tf2 broadcasters do).
     pub tf: bool,
+    /// Also publish each stream's sensor pose on /tf_static (`frame_id` -> the frame its clouds
+    /// name), as tf2's static broadcaster does (reliable, transient local, keep last 1): rviz2
+    /// then shows the input clouds and the markers together.
+    pub tf_static: bool,
     /// Publish markers for rviz2.
     pub markers: bool,
     /// How often per stream the decoded canonical shape is refreshed (Hz; 0: no shape marker).
@@ -47,6 +51,7 @@ impl Default for Ros2Settings {
             reliable: true,
             depth: 10,
             tf: true,
+            tf_static: true,
             markers: true,
             shape_rate_hz: 1.0,
         }

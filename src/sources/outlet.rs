@@ -71,6 +71,8 @@ pub struct Outlet {
     last_input: Option<Instant>,
     /// The source thread's CPU between frames: reading, decompressing and decoding them.
     decode_cpu: crate::cpu::BetweenCalls,
+    /// The sensor frame the input last named (shared by its frames until it names another).
+    sensor_frame: Option<Arc<str>>,
 }
 
 impl Outlet {
@@ -94,6 +96,7 @@ impl Outlet {
             feed_gap: None,
             last_input: None,
             decode_cpu: Default::default(),
+            sensor_frame: None,
         };
         (outlet, receiver)
     }
@@ -148,6 +151,7 @@ impl Outlet {
             ingest_unix_ns: unix_now_ns(),
             unit,
             cloud,
+            sensor_frame: self.sensor_frame.clone(),
         };
         if dropped_non_finite > 0 {
             self.stats
@@ -156,6 +160,13 @@ impl Outlet {
         }
         self.stats.add_cpu(&[("decode", self.decode_cpu.lap())]);
         self.send(Ingest::Frame(frame))
+    }
+
+    /// The sensor frame the next frames' points are in (a ROS header's `frame_id`; empty: none).
+    pub fn sensor_frame(&mut self, frame_id: &str) {
+        if self.sensor_frame.as_deref() != Some(frame_id) {
+            self.sensor_frame = (!frame_id.is_empty()).then(|| Arc::from(frame_id));
+        }
     }
 
     /// Sends a rejection of an input the source could not decode (logged and counted downstream).

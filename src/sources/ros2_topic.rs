@@ -147,7 +147,8 @@ pub fn subscribe(
                     let decoded = decode(&sample, &intrinsics, max_points, depth_step);
                     let Ok(mut outlet) = outlet.lock() else { return };
                     match decoded {
-                        Ok((stamp, points, dropped)) => {
+                        Ok((stamp, points, dropped, frame_id)) => {
+                            outlet.sensor_frame(&frame_id);
                             outlet.frame(PointCloud { points }, unit, Some(stamp), dropped);
                         }
                         Err(reason) => {
@@ -256,7 +257,7 @@ fn decode(
     intrinsics: &Mutex<Option<Arc<CameraIntrinsics>>>,
     max_points: usize,
     depth_step: usize,
-) -> Result<(u64, Vec<[f32; 3]>, usize), String> {
+) -> Result<(u64, Vec<[f32; 3]>, usize, String), String> {
     graph::parse_attachment(&attachment_bytes(sample))?;
     let key = sample.key_expr().as_str();
     let key = key.strip_suffix("/_buf_cpu").unwrap_or(key);
@@ -264,7 +265,7 @@ fn decode(
     let payload = sample.payload().to_bytes();
     if dds_type == msg::POINT_CLOUD2.dds_name() {
         let cloud = decode_point_cloud2(&payload, max_points).map_err(|e| e.to_string())?;
-        Ok((cloud.header.stamp_ns, cloud.points, cloud.dropped_non_finite))
+        Ok((cloud.header.stamp_ns, cloud.points, cloud.dropped_non_finite, cloud.header.frame_id))
     } else if dds_type == msg::IMAGE.dds_name() {
         let k = intrinsics
             .lock()
@@ -272,7 +273,7 @@ fn decode(
             .clone()
             .ok_or("depth image before any CameraInfo")?;
         let cloud = decode_depth_image(&payload, &k, depth_step, max_points).map_err(|e| e.to_string())?;
-        Ok((cloud.header.stamp_ns, cloud.points, cloud.dropped_non_finite))
+        Ok((cloud.header.stamp_ns, cloud.points, cloud.dropped_non_finite, cloud.header.frame_id))
     } else {
         Err(format!(
             "type {dds_type} is not one the node reads ({} or {})",

@@ -73,7 +73,8 @@ pub fn subscribe(
             let decoded = decode_sample(&sample, format, max_points);
             let Ok(mut outlet) = outlet.lock() else { return };
             match decoded {
-                Ok((points, unit, stamp, dropped)) => {
+                Ok((points, unit, stamp, dropped, frame_id)) => {
+                    outlet.sensor_frame(&frame_id);
                     outlet.frame(PointCloud { points }, unit_override.unwrap_or(unit), stamp, dropped);
                 }
                 Err(reason) => {
@@ -84,7 +85,8 @@ pub fn subscribe(
         .wait()
 }
 
-type Decoded = (Vec<[f32; 3]>, Unit, Option<u64>, usize);
+/// Points, their unit, the sensor's stamp, non-finite points dropped, the sensor frame (CDR only).
+type Decoded = (Vec<[f32; 3]>, Unit, Option<u64>, usize, String);
 
 /// Decodes one sample by the configured format, or by its encoding under `auto`.
 pub fn decode_sample(sample: &Sample, format: WireFormat, max_points: usize) -> Result<Decoded, String> {
@@ -105,14 +107,15 @@ pub fn decode_sample(sample: &Sample, format: WireFormat, max_points: usize) -> 
     let payload = sample.payload().to_bytes();
     match format {
         WireFormat::Cdr => decode_point_cloud2(&payload, max_points)
-            .map(|c| (c.points, Unit::Metre, Some(c.header.stamp_ns), c.dropped_non_finite))
+            .map(|c| (c.points, Unit::Metre, Some(c.header.stamp_ns), c.dropped_non_finite, c.header.frame_id))
             .map_err(|e| e.to_string()),
         _ => {
             let stamp = sample
                 .attachment()
                 .and_then(|a| serde_json::from_slice::<serde_json::Value>(&a.to_bytes()).ok())
                 .and_then(|v| v["stamp_nanos"].as_u64());
-            decode_depthai(&payload, max_points).map(|(points, dropped)| (points, Unit::Millimetre, stamp, dropped))
+            decode_depthai(&payload, max_points)
+                .map(|(points, dropped)| (points, Unit::Millimetre, stamp, dropped, String::new()))
         }
     }
 }

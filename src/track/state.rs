@@ -91,6 +91,7 @@ impl StreamTracker {
             }),
             prepared: None,
             input: None,
+            sensor_frame: None,
         }
     }
 }

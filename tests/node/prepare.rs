@@ -209,6 +209,7 @@ fn the_preparer_converts_units_levels_crops_and_rejects_too_few_points() {
         ingest_unix_ns: 0,
         unit,
         cloud: PointCloud { points },
+        sensor_frame: None,
     };
     let settings = PrepareSettings {
         remove_ground: true,
@@ -273,6 +274,7 @@ fn a_source_can_carry_its_own_sensor_pose() {
         ingest_unix_ns: 0,
         unit: Unit::Metre,
         cloud: PointCloud { points: points.clone() },
+        sensor_frame: None,
     };
     let a = preparer.prepare(&frame("a")).unwrap();
     let b = preparer.prepare(&frame("b")).unwrap();

@@ -112,7 +112,7 @@ def test_ros2_output_follows_rmw_zenoh_and_round_trips_through_rosbags(tmp_path)
             # The node and its publishers, as `ros2 node list` / `ros2 topic list` find them.
             deadline = time.monotonic() + 60
             tokens = []
-            while time.monotonic() < deadline and len(tokens) < 1 + len(TOPICS):
+            while time.monotonic() < deadline and len(tokens) < 2 + len(TOPICS):
                 tokens = [str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/**", timeout=2.0)
                           if r.ok is not None]
                 time.sleep(0.2)
@@ -126,6 +126,17 @@ def test_ros2_output_follows_rmw_zenoh_and_round_trips_through_rosbags(tmp_path)
                 time.sleep(0.05)
             for s in subscribers:
                 s.undeclare()
+            # A TF listener that starts now (as rviz2's, TRANSIENT_LOCAL over rmw_zenoh: an
+            # AdvancedSubscriber asking the publishers' caches) still receives /tf_static.
+            static = zenoh.ext.declare_advanced_subscriber(
+                session, ros_key("/tf_static", "tf2_msgs/msg/TFMessage"),
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=100),
+                recovery=zenoh.ext.RecoveryConfig(heartbeat=True), subscriber_detection=True)
+            deadline, tf_static = time.monotonic() + 30, None
+            while tf_static is None and time.monotonic() < deadline:
+                tf_static = static.try_recv()
+                time.sleep(0.05)
+            assert tf_static is not None, "/tf_static reaches a listener that joined late"
             node.send_signal(signal.SIGTERM)
             out, err = node.communicate(timeout=30)
             assert node.returncode == 0, err.decode()
@@ -147,6 +158,8 @@ def test_ros2_output_follows_rmw_zenoh_and_round_trips_through_rosbags(tmp_path)
         assert publisher["type"] == dds_name(msgtype) and publisher["hash"] == STORE.hash_rihs01(msgtype)
         assert publisher["zid"] == nodes[0]["zid"] and publisher["nid"] == nodes[0]["nid"]
     assert publishers["/tf"]["qos"] == "::,100:,:,:,,", "tf2's broadcaster QoS: reliable, volatile, keep last 100"
+    assert publishers["/tf_static"]["qos"] == ":1:,1:,:,:,,", "tf2's static broadcaster: transient local, keep last 1"
+    assert publishers["/tf_static"]["type"] == dds_name("tf2_msgs/msg/TFMessage")
     ids = [e["id"] for e in entities]
     assert len(set(ids)) == len(ids), "entity ids are unique in the session"
 
@@ -201,6 +214,18 @@ def test_ros2_output_follows_rmw_zenoh_and_round_trips_through_rosbags(tmp_path)
     assert all(len(m.data) == 10 and m.layout.dim[0].label == "z_e" for m in z_e)
     tf = STORE.deserialize_cdr(samples["/tf"][-1].payload.to_bytes(), "tf2_msgs/msg/TFMessage")
     assert tf.transforms[0].header.frame_id == "world" and tf.transforms[0].child_frame_id == STREAM
+    # /tf_static: the gravity frame -> the frame the sample's clouds name, at the configured sensor
+    # pose (config/replay.toml's [prepare]), with rmw_zenoh's attachment.
+    assert len(tf_static.attachment.to_bytes()) == 33
+    static = STORE.deserialize_cdr(tf_static.payload.to_bytes(), "tf2_msgs/msg/TFMessage").transforms
+    assert [(t.header.frame_id, t.child_frame_id) for t in static] == [("world", "camera_depth_optical_frame")]
+    t, r = static[0].transform.translation, static[0].transform.rotation
+    assert all(abs(a - b) < 1e-6 for a, b in zip([t.x, t.y, t.z], [2.6, 0.0, 1.3]))
+    rotation = [[1 - 2 * (r.y ** 2 + r.z ** 2), 2 * (r.x * r.y - r.z * r.w), 2 * (r.x * r.z + r.y * r.w)],
+                [2 * (r.x * r.y + r.z * r.w), 1 - 2 * (r.x ** 2 + r.z ** 2), 2 * (r.y * r.z - r.x * r.w)],
+                [2 * (r.x * r.z - r.y * r.w), 2 * (r.y * r.z + r.x * r.w), 1 - 2 * (r.x ** 2 + r.y ** 2)]]
+    expected = [[0.0, 0.188847, -0.982006], [1.0, 0.0, 0.0], [0.0, -0.982006, -0.188847]]
+    assert all(abs(rotation[i][j] - expected[i][j]) < 1e-5 for i in range(3) for j in range(3)), rotation
     markers = [STORE.deserialize_cdr(s.payload.to_bytes(), "visualization_msgs/msg/MarkerArray")
                for s in samples[f"{NAMESPACE}/{STREAM}/markers"]]
     last = markers[-1].markers

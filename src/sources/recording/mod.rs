@@ -369,7 +369,7 @@ impl Replayer<'_> {
         let decoded = match wanted {
             Wanted::Clouds(t) if topic == t => Some(
                 decode_point_cloud2(&message.data, self.max_points)
-                    .map(|c| (c.header.stamp_ns, c.points, c.dropped_non_finite)),
+                    .map(|c| (c.header.stamp_ns, c.points, c.dropped_non_finite, c.header.frame_id)),
             ),
             Wanted::Depth { info, .. } if topic == info => {
                 match decode_camera_info(&message.data) {
@@ -380,7 +380,7 @@ impl Replayer<'_> {
                 match (&self.intrinsics, self.waiting.take()) {
                     (Some(k), Some(image)) => Some(
                         decode_depth_image(&image, k, settings.depth_step, self.max_points)
-                            .map(|c| (c.header.stamp_ns, c.points, c.dropped_non_finite)),
+                            .map(|c| (c.header.stamp_ns, c.points, c.dropped_non_finite, c.header.frame_id)),
                     ),
                     (_, image) => {
                         self.waiting = image;
@@ -391,7 +391,7 @@ impl Replayer<'_> {
             Wanted::Depth { image, .. } if topic == image => match &self.intrinsics {
                 Some(k) => Some(
                     decode_depth_image(&message.data, k, settings.depth_step, self.max_points)
-                        .map(|c| (c.header.stamp_ns, c.points, c.dropped_non_finite)),
+                        .map(|c| (c.header.stamp_ns, c.points, c.dropped_non_finite, c.header.frame_id)),
                 ),
                 None => {
                     // Wait for the first CameraInfo; an image it replaces is rejected.
@@ -415,9 +415,10 @@ impl Replayer<'_> {
             }
         }
         match decoded {
-            Ok((stamp, points, dropped)) => self
-                .outlet
-                .frame(PointCloud { points }, self.unit, Some(stamp), dropped),
+            Ok((stamp, points, dropped, frame_id)) => {
+                self.outlet.sensor_frame(&frame_id);
+                self.outlet.frame(PointCloud { points }, self.unit, Some(stamp), dropped)
+            }
             Err(e) => self.outlet.reject(
                 format!("{} {topic} at log time {}: {e}", file.display(), message.log_time),
                 Some(message.log_time),
