@@ -179,10 +179,17 @@ impl DepthCamera {
 
     /// Renders one noisy depth frame.
     pub fn capture(&self, scene: &Scene, rng: &mut impl Rng) -> DepthImage {
+        self.capture_labelled(scene, rng).0
+    }
+
+    /// [`DepthCamera::capture`], with the index of the mesh (in `scene.meshes`) each valid pixel
+    /// measured ([`NO_MESH`] where the pixel is invalid or saw the ground).
+    pub fn capture_labelled(&self, scene: &Scene, rng: &mut impl Rng) -> (DepthImage, Vec<u16>) {
         let intrinsics = &self.intrinsics;
-        let left = render_depth(intrinsics, &self.world_from_camera, scene);
+        let mut labels = vec![NO_MESH; intrinsics.width as usize * intrinsics.height as usize];
+        let left = render_depth(intrinsics, &self.world_from_camera, scene, Some(&mut labels));
         let world_from_right = self.world_from_camera * Translation3::new(self.stereo.baseline, 0.0, 0.0);
-        let right = render_depth(intrinsics, &world_from_right, scene);
+        let right = render_depth(intrinsics, &world_from_right, scene, None);
 
         let (width, height) = (intrinsics.width as usize, intrinsics.height as usize);
         let min_depth = self.min_depth();
@@ -211,11 +218,17 @@ impl DepthCamera {
                 }
             }
         }
-        DepthImage {
+        for (label, depth) in labels.iter_mut().zip(&millimetres) {
+            if *depth == 0 {
+                *label = NO_MESH;
+            }
+        }
+        let image = DepthImage {
             width: intrinsics.width,
             height: intrinsics.height,
             millimetres,
-        }
+        };
+        (image, labels)
     }
 }
 
@@ -244,18 +257,34 @@ impl DepthImage {
 }
 
 /// Noise-free optical depth per pixel (infinity where nothing is hit).
-fn render_depth(intrinsics: &Intrinsics, world_from_camera: &Isometry3<f64>, scene: &Scene) -> Vec<f64> {
+/// A pixel that measured no mesh (invalid, or the ground).
+pub const NO_MESH: u16 = u16::MAX;
+
+/// Noise-free optical depth per pixel (infinity where nothing is hit); with `labels`, the index of
+/// the mesh nearest at each pixel.
+fn render_depth(
+    intrinsics: &Intrinsics,
+    world_from_camera: &Isometry3<f64>,
+    scene: &Scene,
+    mut labels: Option<&mut [u16]>,
+) -> Vec<f64> {
     let (width, height) = (intrinsics.width as usize, intrinsics.height as usize);
     let mut depth = vec![f64::INFINITY; width * height];
     if let Some(half_extent) = scene.ground_half_extent {
         render_ground(intrinsics, world_from_camera, half_extent, &mut depth);
     }
     let camera_from_world = world_from_camera.inverse();
-    for mesh in &scene.meshes {
+    for (index, mesh) in scene.meshes.iter().enumerate() {
+        let label = index.min(NO_MESH as usize - 1) as u16;
         let points: Vec<Point3<f64>> = mesh.positions.iter().map(|p| camera_from_world * p).collect();
         for triangle in &mesh.triangles {
             let corners = triangle.map(|i| points[i as usize]);
-            rasterize(intrinsics, corners, &mut depth);
+            rasterize(
+                intrinsics,
+                corners,
+                &mut depth,
+                labels.as_deref_mut().map(|l| (l, label)),
+            );
         }
     }
     depth
@@ -283,7 +312,12 @@ fn render_ground(intrinsics: &Intrinsics, world_from_camera: &Isometry3<f64>, ha
 
 /// Z-buffers one triangle given in the optical frame; triangles reaching behind the near plane
 /// are skipped (the scene is always well in front of the camera).
-fn rasterize(intrinsics: &Intrinsics, corners: [Point3<f64>; 3], depth: &mut [f64]) {
+fn rasterize(
+    intrinsics: &Intrinsics,
+    corners: [Point3<f64>; 3],
+    depth: &mut [f64],
+    mut labels: Option<(&mut [u16], u16)>,
+) {
     const NEAR: f64 = 0.05;
     if corners.iter().any(|p| p.z < NEAR) {
         return;
@@ -318,9 +352,12 @@ fn rasterize(intrinsics: &Intrinsics, corners: [Point3<f64>; 3], depth: &mut [f6
             }
             // 1/z is affine in screen space: interpolate it, not z.
             let z = 1.0 / (b0 * w0 + b1 * w1 + b2 * w2);
-            let pixel = &mut depth[(v * width + u) as usize];
-            if z < *pixel {
-                *pixel = z;
+            let index = (v * width + u) as usize;
+            if z < depth[index] {
+                depth[index] = z;
+                if let Some((labels, label)) = labels.as_mut() {
+                    labels[index] = *label;
+                }
             }
         }
     }

@@ -201,6 +201,7 @@ pub fn run_feed(
                 truth: &frame.truth,
                 world_from_camera: camera_pose,
                 points: frame.points.len(),
+                subjects: &frame.subjects,
             };
             truth.put(serde_json::to_vec(&message)?).wait().map_err(zenoh_error)?;
             summary.published += 1;

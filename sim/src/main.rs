@@ -16,7 +16,7 @@ use gdvae_sim::feed::{run_feed, zenoh_config, FeedOptions, DEFAULT_PREFIX};
 use gdvae_sim::motion::{MotionKind, MotionSpec};
 use gdvae_sim::ply::write_ply;
 use gdvae_sim::recording::{write_recording, RecordingOptions};
-use gdvae_sim::scenario::{Scenario, ViewSpec};
+use gdvae_sim::scenario::{Away, Scenario, ViewSpec};
 use gdvae_sim::seeds;
 use zenoh::Wait;
 
@@ -115,6 +115,29 @@ struct ScenarioArgs {
     decimation: usize,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Other subjects in view, one per family given (e.g. `--others biped,quadruped`), each on its
+    /// own path on a stage shifted sideways (`--others-offset`), so that paths cross in the image.
+    #[arg(long, value_delimiter = ',')]
+    others: Vec<FamilyArg>,
+    /// Sideways shift (m) of the others' stages from the primary's: the first at +offset, the
+    /// second at -offset, the third at +2 x offset, ...
+    #[arg(long, default_value_t = 0.9)]
+    others_offset: f64,
+    /// A subject out of the scene for an interval: `SUBJECT:FROM-TO` in seconds, SUBJECT 0 the
+    /// primary and 1.. the others (e.g. `--away 1:3-6,1:9-10`).
+    #[arg(long, value_delimiter = ',', value_parser = parse_away)]
+    away: Vec<Away>,
+}
+
+fn parse_away(text: &str) -> Result<Away, String> {
+    let bad = || format!("'{text}': expected SUBJECT:FROM-TO, e.g. 1:3-6");
+    let (subject, interval) = text.split_once(':').ok_or_else(bad)?;
+    let (from, to) = interval.split_once('-').ok_or_else(bad)?;
+    Ok(Away {
+        subject: subject.trim().parse().map_err(|_| bad())?,
+        from: from.trim().parse().map_err(|_| bad())?,
+        to: to.trim().parse().map_err(|_| bad())?,
+    })
 }
 
 impl ScenarioArgs {
@@ -137,7 +160,22 @@ impl ScenarioArgs {
             decimation: self.decimation,
             ..ViewSpec::default()
         };
-        Ok(Scenario::new(motion, view)?)
+        let others = self
+            .others
+            .iter()
+            .enumerate()
+            .map(|(k, family)| {
+                let side = if k % 2 == 0 { 1.0 } else { -1.0 };
+                let spec = MotionSpec {
+                    families: vec![Family::from(*family)],
+                    switch_times: Vec::new(),
+                    seed: seeds::derive(self.seed, &[6, k as u64]),
+                    ..motion.clone()
+                };
+                (spec, [0.0, side * (k / 2 + 1) as f64 * self.others_offset])
+            })
+            .collect();
+        Ok(Scenario::new(motion, view)?.with_others(others, self.away.clone())?)
     }
 }
 

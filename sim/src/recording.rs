@@ -111,6 +111,17 @@ pub fn write_recording(
         metadata: BTreeMap::from([
             ("motion".into(), serde_json::to_string(&scenario.motion.spec)?),
             ("view".into(), serde_json::to_string(&scenario.view)?),
+            (
+                "others".into(),
+                serde_json::to_string(
+                    &scenario
+                        .others
+                        .iter()
+                        .map(|o| serde_json::json!({"motion": o.motion.spec, "offset": o.offset}))
+                        .collect::<Vec<_>>(),
+                )?,
+            ),
+            ("away".into(), serde_json::to_string(&scenario.away)?),
             ("intrinsics".into(), serde_json::to_string(&scenario.camera.intrinsics)?),
             ("stereo".into(), serde_json::to_string(&scenario.camera.stereo)?),
             ("world_from_camera".into(), serde_json::to_string(&camera_pose)?),
@@ -155,6 +166,7 @@ pub fn write_recording(
                 truth: &frame.truth,
                 world_from_camera: camera_pose,
                 points: frame.points.len(),
+                subjects: &frame.subjects,
             };
             write(truth_channel, &serde_json::to_vec(&truth)?)?;
             point_sum += frame.points.len();
@@ -193,6 +205,16 @@ pub const GROUND_TRUTH_JSON_SCHEMA: &str = r#"{
     "world_from_camera": {"type": "object", "properties": {
       "translation": {"type": "array", "items": {"type": "number"}},
       "rotation_xyzw": {"type": "array", "items": {"type": "number"}}}},
-    "points": {"type": "integer"}
+    "points": {"type": "integer"},
+    "subjects": {"type": "array", "description": "every subject, the primary (the fields above) first", "items": {
+      "type": "object",
+      "required": ["id", "present", "visible_points", "subject", "family", "beta", "theta", "yaw", "translation"],
+      "properties": {
+        "id": {"type": "integer", "description": "0: the primary; 1..: the others, in order"},
+        "present": {"type": "boolean", "description": "in the scene (false while it has left the view)"},
+        "visible_points": {"type": "integer", "description": "points of this frame's cloud on the subject"},
+        "subject": {"type": "string"}, "family": {"type": "string"},
+        "beta": {"type": "array"}, "theta": {"type": "array"}, "yaw": {"type": "number"},
+        "translation": {"type": "array"}, "gait_phase": {"type": "number"}}}}
   }
 }"#;

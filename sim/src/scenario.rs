@@ -1,6 +1,12 @@
 //! A scenario: a motion script seen by a depth camera. It yields sensor frames (depth image, point
 //! cloud in the camera's optical frame, and the frame's ground truth), shared by MCAP recordings
 //! (`recording`) and the live zenoh feed (`sim feed`).
+//!
+//! Besides the script's subject (the primary, whose switches model identity changes), a scenario
+//! may hold other subjects, each on its own path on a stage shifted sideways (so that paths cross
+//! in the image and one subject hides another), and any subject may leave the view for given
+//! intervals. Each frame's ground truth then lists every subject: its pose and shape, whether it
+//! is in the scene, and how many of the cloud's points it gave (0 when hidden).
 
 use nalgebra::{Point3, Vector3};
 use rand::Rng;
@@ -53,6 +59,8 @@ pub enum ScenarioError {
     NotPositive(&'static str, f64),
     #[error("posing frame {0}: {1}")]
     Pose(usize, crate::family::SubjectError),
+    #[error("away interval {0:?}: the subject must be one of the {1} (0: the primary) and from < to")]
+    BadAway(Away, usize),
 }
 
 /// The camera's pose in the world, as a ROS transform (translation m, rotation quaternion x y z w).
@@ -62,7 +70,8 @@ pub struct WorldFromCamera {
     pub rotation_xyzw: [f64; 4],
 }
 
-/// Ground truth of one sensor frame as recordings and feeds publish it (JSON).
+/// Ground truth of one sensor frame as recordings and feeds publish it (JSON): the primary
+/// subject's truth flattened (as single-subject recordings always had it), and every subject's.
 #[derive(Debug, Clone, Serialize)]
 pub struct GroundTruthMessage<'a> {
     /// Sensor stamp of the frame's point cloud and image (ns since the Unix epoch).
@@ -72,6 +81,36 @@ pub struct GroundTruthMessage<'a> {
     pub world_from_camera: WorldFromCamera,
     /// Points in this frame's cloud.
     pub points: usize,
+    /// Every subject of the scenario, the primary first (`id` 0).
+    pub subjects: &'a [SubjectTruth],
+}
+
+/// One subject's ground truth in one frame.
+#[derive(Debug, Clone, Serialize)]
+pub struct SubjectTruth {
+    /// The subject's place in the scenario: 0 the primary, then the others in order. A track's
+    /// identity for multi-object evaluation (the primary's `subject` changes at its switches).
+    pub id: usize,
+    /// In the scene (false while it has left the view).
+    pub present: bool,
+    /// Points of this frame's cloud on the subject (0 when absent, hidden or out of the image).
+    pub visible_points: usize,
+    #[serde(flatten)]
+    pub truth: FrameTruth,
+}
+
+/// Another subject in a scenario: its own motion, its stage shifted by `offset` (m, world x, y).
+pub struct Companion {
+    pub motion: Motion,
+    pub offset: [f64; 2],
+}
+
+/// An interval (s) in which subject `subject` (0: the primary) is out of the scene.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Away {
+    pub subject: usize,
+    pub from: f64,
+    pub to: f64,
 }
 
 /// One simulated sensor frame.
@@ -82,12 +121,17 @@ pub struct SensorFrame {
     pub points: Vec<[f32; 3]>,
     /// Nanoseconds since the start of the sequence.
     pub offset_nanos: u64,
+    /// Every subject's truth, the primary first.
+    pub subjects: Vec<SubjectTruth>,
 }
 
 pub struct Scenario {
     pub motion: Motion,
     pub view: ViewSpec,
     pub camera: DepthCamera,
+    /// The other subjects in view, if any.
+    pub others: Vec<Companion>,
+    pub away: Vec<Away>,
     clutter: Vec<Mesh>,
 }
 
@@ -122,8 +166,38 @@ impl Scenario {
             motion,
             view,
             camera,
+            others: Vec::new(),
+            away: Vec::new(),
             clutter,
         })
+    }
+
+    /// Adds other subjects (each its own motion script, lasting as long as the primary's, on a
+    /// stage shifted by its offset) and intervals in which subjects leave the view.
+    pub fn with_others(mut self, others: Vec<(MotionSpec, [f64; 2])>, away: Vec<Away>) -> Result<Self, ScenarioError> {
+        for (spec, offset) in others {
+            if !offset.iter().all(|v| v.is_finite()) {
+                return Err(ScenarioError::NotPositive("offset", offset[0]));
+            }
+            self.others.push(Companion {
+                motion: Motion::new(spec)?,
+                offset,
+            });
+        }
+        for a in &away {
+            if a.subject > self.others.len() || !(a.from < a.to && a.from.is_finite() && a.to.is_finite()) {
+                return Err(ScenarioError::BadAway(*a, self.others.len() + 1));
+            }
+        }
+        self.away = away;
+        Ok(self)
+    }
+
+    fn present(&self, subject: usize, time: f64) -> bool {
+        !self
+            .away
+            .iter()
+            .any(|a| a.subject == subject && (a.from..a.to).contains(&time))
     }
 
     pub fn frame_count(&self) -> usize {
@@ -143,21 +217,56 @@ impl Scenario {
     /// Frame `index`: deterministic given the specs (its noise has its own seed).
     pub fn frame(&self, index: usize) -> Result<SensorFrame, ScenarioError> {
         let (truth, mesh) = self.motion.frame(index).map_err(|e| ScenarioError::Pose(index, e))?;
-        let mut meshes = vec![mesh];
+        // Every subject's truth and mesh; the scene holds those present, then the clutter.
+        let mut posed = vec![(truth.clone(), mesh)];
+        for other in &self.others {
+            let (mut truth, mut mesh) = other.motion.frame(index).map_err(|e| ScenarioError::Pose(index, e))?;
+            let shift = Vector3::new(other.offset[0], other.offset[1], 0.0);
+            mesh.positions.iter_mut().for_each(|p| *p += shift);
+            truth.translation[0] += other.offset[0];
+            truth.translation[1] += other.offset[1];
+            posed.push((truth, mesh));
+        }
+        let mut subjects = Vec::with_capacity(posed.len());
+        let mut meshes = Vec::with_capacity(posed.len() + self.clutter.len());
+        let mut owner = Vec::new();
+        for (id, (truth, mesh)) in posed.into_iter().enumerate() {
+            let present = self.present(id, truth.time);
+            if present {
+                owner.push(id);
+                meshes.push(mesh);
+            }
+            subjects.push(SubjectTruth {
+                id,
+                present,
+                visible_points: 0,
+                truth,
+            });
+        }
         meshes.extend(self.clutter.iter().cloned());
         let scene = Scene {
             meshes,
             ground_half_extent: (self.view.ground_half_extent > 0.0).then_some(self.view.ground_half_extent),
         };
         let mut rng = seeds::rng(seeds::derive(self.motion.spec.seed, &[4, index as u64]));
-        let depth = self.camera.capture(&scene, &mut rng);
+        let (depth, labels) = self.camera.capture_labelled(&scene, &mut rng);
         let points = depth.unproject(&self.camera.intrinsics, self.view.decimation);
+        // The cloud's points on each subject, on the pixels `unproject` keeps.
+        let (width, step) = (depth.width as usize, self.view.decimation.max(1));
+        for v in (0..depth.height as usize).step_by(step) {
+            for u in (0..width).step_by(step) {
+                if let Some(&id) = owner.get(labels[v * width + u] as usize) {
+                    subjects[id].visible_points += 1;
+                }
+            }
+        }
         let offset_nanos = (truth.time * 1e9).round() as u64;
         Ok(SensorFrame {
             truth,
             depth,
             points,
             offset_nanos,
+            subjects,
         })
     }
 }

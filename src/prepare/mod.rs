@@ -115,7 +115,10 @@ impl Preparer {
             return None;
         }
         let (rotation, translation) = self.per_stream.get(stream).unwrap_or(&self.sensor_to_gravity);
-        Some((std::array::from_fn(|i| std::array::from_fn(|j| rotation[(i, j)])), (*translation).into()))
+        Some((
+            std::array::from_fn(|i| std::array::from_fn(|j| rotation[(i, j)])),
+            (*translation).into(),
+        ))
     }
 
     /// Keeps a copy of each frame's input decimated to at most `points` points (every k-th), for

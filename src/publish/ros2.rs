@@ -72,8 +72,11 @@ impl StaticTf {
             stamp_ns: now,
             frame_id: parent,
         };
-        let transforms: Vec<(Header, &str, Pose)> =
-            self.frames.values().map(|(child, pose)| (header, &**child, *pose)).collect();
+        let transforms: Vec<(Header, &str, Pose)> = self
+            .frames
+            .values()
+            .map(|(child, pose)| (header, &**child, *pose))
+            .collect();
         self.publisher
             .put(msg::tf_message(&transforms))
             .attachment(graph::attachment(self.sequence, now as i64, &self.gid).to_vec())
@@ -189,7 +192,13 @@ impl Ros2Sink {
         };
         let (node, session) = (self.participant.node(), self.participant.session());
         let message = &msg::TF_MESSAGE;
-        let token_key = node.entity_token(EntityKind::Publisher, self.participant.next_id(), "/tf_static", message, &qos);
+        let token_key = node.entity_token(
+            EntityKind::Publisher,
+            self.participant.next_id(),
+            "/tf_static",
+            message,
+            &qos,
+        );
         let error = |e: zenoh::Error| PublishError::Ros2(format!("declaring /tf_static: {e}"));
         let token = session
             .liveliness()
@@ -201,7 +210,9 @@ impl Ros2Sink {
             .congestion_control(CongestionControl::Drop)
             .reliability(zenoh::qos::Reliability::Reliable)
             .cache(CacheConfig::default().max_samples(1))
-            .sample_miss_detection(MissDetectionConfig::default().sporadic_heartbeat(std::time::Duration::from_millis(500)))
+            .sample_miss_detection(
+                MissDetectionConfig::default().sporadic_heartbeat(std::time::Duration::from_millis(500)),
+            )
             .publisher_detection()
             .wait()
             .map_err(error)?;
@@ -219,7 +230,11 @@ impl Ros2Sink {
         let (Some(tf_static), Some(frame)) = (self.tf_static.as_mut(), state.sensor_frame.as_ref()) else {
             return Ok(());
         };
-        if tf_static.frames.get(&state.stream).is_some_and(|(known, _)| known == frame) {
+        if tf_static
+            .frames
+            .get(&state.stream)
+            .is_some_and(|(known, _)| known == frame)
+        {
             return Ok(());
         }
         let Some(pose) = self.sensor_poses.get(&state.stream) else {

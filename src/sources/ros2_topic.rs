@@ -265,7 +265,12 @@ fn decode(
     let payload = sample.payload().to_bytes();
     if dds_type == msg::POINT_CLOUD2.dds_name() {
         let cloud = decode_point_cloud2(&payload, max_points).map_err(|e| e.to_string())?;
-        Ok((cloud.header.stamp_ns, cloud.points, cloud.dropped_non_finite, cloud.header.frame_id))
+        Ok((
+            cloud.header.stamp_ns,
+            cloud.points,
+            cloud.dropped_non_finite,
+            cloud.header.frame_id,
+        ))
     } else if dds_type == msg::IMAGE.dds_name() {
         let k = intrinsics
             .lock()
@@ -273,7 +278,12 @@ fn decode(
             .clone()
             .ok_or("depth image before any CameraInfo")?;
         let cloud = decode_depth_image(&payload, &k, depth_step, max_points).map_err(|e| e.to_string())?;
-        Ok((cloud.header.stamp_ns, cloud.points, cloud.dropped_non_finite, cloud.header.frame_id))
+        Ok((
+            cloud.header.stamp_ns,
+            cloud.points,
+            cloud.dropped_non_finite,
+            cloud.header.frame_id,
+        ))
     } else {
         Err(format!(
             "type {dds_type} is not one the node reads ({} or {})",

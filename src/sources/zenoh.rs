@@ -107,7 +107,15 @@ pub fn decode_sample(sample: &Sample, format: WireFormat, max_points: usize) -> 
     let payload = sample.payload().to_bytes();
     match format {
         WireFormat::Cdr => decode_point_cloud2(&payload, max_points)
-            .map(|c| (c.points, Unit::Metre, Some(c.header.stamp_ns), c.dropped_non_finite, c.header.frame_id))
+            .map(|c| {
+                (
+                    c.points,
+                    Unit::Metre,
+                    Some(c.header.stamp_ns),
+                    c.dropped_non_finite,
+                    c.header.frame_id,
+                )
+            })
             .map_err(|e| e.to_string()),
         _ => {
             let stamp = sample

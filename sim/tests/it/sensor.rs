@@ -5,7 +5,7 @@ use gdvae_sim::family::Family;
 use gdvae_sim::mesh::Mesh;
 use gdvae_sim::motion::{Motion, MotionKind, MotionSpec, MAX_TURN_RATE};
 use gdvae_sim::recording::{write_recording, RecordingOptions, GROUND_TRUTH_TOPIC, POINTS_TOPIC};
-use gdvae_sim::scenario::{Scenario, ViewSpec};
+use gdvae_sim::scenario::{Away, Scenario, ViewSpec};
 use gdvae_sim::seeds;
 use nalgebra::{Point3, Vector3};
 
@@ -261,4 +261,62 @@ fn recordings_are_deterministic_and_complete() {
     assert_eq!(per_topic.len(), 4, "{per_topic:?}");
     assert!(per_topic.values().all(|&count| count == 30), "{per_topic:?}");
     assert!(per_topic.contains_key(POINTS_TOPIC) && per_topic.contains_key(GROUND_TRUTH_TOPIC));
+}
+
+#[test]
+fn every_subject_of_a_crowded_scene_has_its_truth_its_visible_points_and_its_absences() {
+    let view = ViewSpec {
+        decimation: 4,
+        ..ViewSpec::default()
+    };
+    let mut spec = walk_spec(vec![]);
+    spec.duration = 2.0;
+    let other = MotionSpec {
+        families: vec![Family::Biped],
+        seed: 99,
+        ..spec.clone()
+    };
+    let away = Away {
+        subject: 1,
+        from: 0.5,
+        to: 1.0,
+    };
+    let scenario = Scenario::new(spec.clone(), view.clone())
+        .unwrap()
+        .with_others(vec![(other, [0.0, 0.9])], vec![away])
+        .unwrap();
+    let alone = Scenario::new(spec, view).unwrap();
+    for index in [0, 20, 40] {
+        let frame = scenario.frame(index).unwrap();
+        let [primary, biped] = &frame.subjects[..] else {
+            panic!("two subjects: {:?}", frame.subjects.len())
+        };
+        assert_eq!((primary.id, biped.id), (0, 1));
+        assert_eq!(primary.truth, frame.truth, "the primary's truth is the flattened one");
+        assert_eq!(biped.truth.family, Family::Biped);
+        assert!((biped.truth.translation[1] - 0.9).abs() < 2.0, "on its shifted stage");
+        let gone = (0.5..1.0).contains(&frame.truth.time);
+        assert_eq!(biped.present, !gone, "frame {index}");
+        if gone {
+            assert_eq!(biped.visible_points, 0);
+        } else {
+            assert!(biped.visible_points > 100, "frame {index}: {}", biped.visible_points);
+        }
+        // The primary's points: as many as it gives alone, less what the biped hides.
+        let solo = alone.frame(index).unwrap();
+        assert!(primary.visible_points > 100 && primary.visible_points <= solo.subjects[0].visible_points + 5);
+        assert!(primary.visible_points + biped.visible_points < frame.points.len());
+        if gone {
+            // Without the biped the scene is the primary's alone: the same cloud and count.
+            assert_eq!(frame.points.len(), solo.points.len(), "frame {index}");
+            assert_eq!(primary.visible_points, solo.subjects[0].visible_points);
+        }
+    }
+    let bad = Away {
+        subject: 2,
+        from: 0.0,
+        to: 1.0,
+    };
+    let one = Scenario::new(walk_spec(vec![]), ViewSpec::default()).unwrap();
+    assert!(one.with_others(vec![], vec![bad]).is_err(), "no subject 2");
 }

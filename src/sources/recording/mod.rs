@@ -417,7 +417,8 @@ impl Replayer<'_> {
         match decoded {
             Ok((stamp, points, dropped, frame_id)) => {
                 self.outlet.sensor_frame(&frame_id);
-                self.outlet.frame(PointCloud { points }, self.unit, Some(stamp), dropped)
+                self.outlet
+                    .frame(PointCloud { points }, self.unit, Some(stamp), dropped)
             }
             Err(e) => self.outlet.reject(
                 format!("{} {topic} at log time {}: {e}", file.display(), message.log_time),
