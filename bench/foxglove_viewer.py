@@ -1,9 +1,10 @@
 """The Foxglove live view's cost (`[publish.foxglove]`): `gdvae-node replay` of COPIES copies of the
-sample with the view off, on with a viewer that receives everything, and on with a viewer that
-subscribes to every channel and then stops reading (a stalled Foxglove app). Prints, per case and
+sample with the view off, on with no viewer, on with a viewer that receives everything, and on with
+a viewer that subscribes to every channel and then stops reading (a stalled Foxglove app). Prints, per case and
 round, the replay's frames/s and the node's peak memory (VmHWM), and what the viewer received.
 
-    python bench/foxglove_viewer.py [--copies 16] [--rounds 2] [--input-points N] [--out viewer.json]
+    python bench/foxglove_viewer.py [--copies 16] [--rounds 2] [--input-points N] [--max-rate HZ]
+        [--cases off,unwatched,reading,stalled] [--out viewer.json]
 
 The viewer is a Python client of the Foxglove WebSocket protocol (subprotocol foxglove.sdk.v1) on
 the same machine; it connects while the node loads its bundle, before the first state.
@@ -24,6 +25,8 @@ import websockets
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 NODE = ROOT / "target/release/gdvae-node"
 SAMPLE = ROOT / "sim/samples/walk_switch.mcap"
+# The view off; on with no viewer; on with a viewer reading everything; on with a stalled viewer.
+CASES = ["off", "unwatched", "reading", "stalled"]
 
 
 def free_port():
@@ -67,7 +70,7 @@ async def viewer(port, stall, deadline):
     return received
 
 
-def replay(copies, case, port, input_points):
+def replay(copies, case, port, input_points, max_rate):
     """One replay; returns its figures and what the viewer received."""
     # Beside config/replay.toml, whose relative paths it keeps.
     with tempfile.NamedTemporaryFile("w", dir=ROOT / "config", prefix=".viewer-", suffix=".toml") as file:
@@ -76,13 +79,15 @@ def replay(copies, case, port, input_points):
         if case != "off":
             with open(config, "a") as f:
                 f.write(f"\n[publish.foxglove]\nenabled = true\nport = {port}\n")
+                if max_rate is not None:
+                    f.write(f"max_rate_hz = {max_rate}\n")
                 if input_points is not None:
                     f.write(f"[publish.view]\ninput_points = {input_points}\n")
         command = [str(NODE), "-q", "replay", *[str(SAMPLE)] * copies, "--config", str(config),
                    "--no-baseline", "--json"]
         node = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         received = None
-        if case != "off":
+        if case in ("reading", "stalled"):
             async def watch():
                 task = asyncio.create_task(viewer(port, case == "stalled", time.monotonic() + 60))
                 while node.poll() is None:
@@ -106,21 +111,25 @@ def main():
     parser.add_argument("--copies", type=int, default=16)
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--input-points", type=int, help="[publish.view] input_points (default: the config's)")
+    parser.add_argument("--max-rate", type=float, help="[publish.foxglove] max_rate_hz (default: the config's)")
+    parser.add_argument("--cases", default=",".join(CASES), help="which of " + ", ".join(CASES))
     parser.add_argument("--out")
     args = parser.parse_args()
     rows = []
     for round_ in range(args.rounds):
-        for case in ["off", "reading", "stalled"]:
-            row = replay(args.copies, case, free_port(), args.input_points) | {"round": round_}
+        for case in args.cases.split(","):
+            row = replay(args.copies, case, free_port(), args.input_points, args.max_rate) | {"round": round_}
             rows.append(row)
             print(f"round {round_} {case:8s} {row['frames_per_second']:7.1f} frames/s  peak memory "
                   f"{row['peak_memory_mib']:6.1f} MiB  viewer received {row['viewer_received']}", flush=True)
-    for case in ["off", "reading", "stalled"]:
+    for case in args.cases.split(","):
         fps = [r["frames_per_second"] for r in rows if r["case"] == case]
         mem = [r["peak_memory_mib"] for r in rows if r["case"] == case]
         print(f"{case:8s} frames/s {' / '.join(f'{f:.0f}' for f in fps)}, peak memory "
               f"{' / '.join(f'{m:.0f}' for m in mem)} MiB")
     extra = f" --input-points {args.input_points}" if args.input_points is not None else ""
+    extra += f" --max-rate {args.max_rate}" if args.max_rate is not None else ""
+    extra += f" --cases {args.cases}" if args.cases != ",".join(CASES) else ""
     print(f"command: python bench/foxglove_viewer.py --copies {args.copies} --rounds {args.rounds}{extra}")
     if args.out:
         pathlib.Path(args.out).write_text(json.dumps(rows, indent=1))

@@ -6,8 +6,9 @@
 //! identity's label (`/scene`). Off by default.
 //!
 //! Nothing here costs the pipeline while no viewer subscribes; while one does, the publish thread
-//! only hands each state to the view's own thread through a bounded queue, and a state that does
-//! not fit is dropped from the view, counted and logged. The server then sends each viewer's
+//! hands at most `max_rate_hz` states a second per stream (30: a viewer draws no faster, and a
+//! replay runs far faster) to the view's own thread through a bounded queue, and a state that
+//! does not fit is dropped from the view, counted and logged. The server then sends each viewer's
 //! messages from its own queue (`backlog` messages): a viewer that cannot keep up loses the oldest
 //! (the SDK logs "outbox for client ... full"), never the pipeline's time, and memory stays bounded.
 
@@ -36,6 +37,9 @@ pub struct FoxgloveSettings {
     pub port: u16,
     /// Messages queued per viewer before the oldest are dropped.
     pub backlog: usize,
+    /// At most this many states a second per stream go to the view (a viewer draws no faster; a
+    /// replay runs far faster); 0: every state.
+    pub max_rate_hz: f64,
 }
 
 impl Default for FoxgloveSettings {
@@ -45,6 +49,7 @@ impl Default for FoxgloveSettings {
             bind: "127.0.0.1".into(),
             port: 8765,
             backlog: 256,
+            max_rate_hz: 30.0,
         }
     }
 }
@@ -53,6 +58,9 @@ impl FoxgloveSettings {
     pub fn validate(&self) -> Result<(), String> {
         if self.enabled && (self.bind.is_empty() || self.backlog == 0) {
             return Err("publish.foxglove: bind must be set and backlog at least 1".into());
+        }
+        if !(self.max_rate_hz >= 0.0 && self.max_rate_hz.is_finite()) {
+            return Err("publish.foxglove.max_rate_hz must be finite and >= 0".into());
         }
         Ok(())
     }
@@ -110,6 +118,10 @@ pub struct FoxgloveSink {
     view: ViewSettings,
     shapes: Option<Arc<ShapeWorker>>,
     metres_per_unit: f32,
+    /// The shortest time between two states of a stream sent to the view (from `max_rate_hz`).
+    min_interval: std::time::Duration,
+    /// When each stream's last state went to the view.
+    last_sent: HashMap<String, std::time::Instant>,
     dropped: u64,
 }
 
@@ -144,6 +156,14 @@ impl FoxgloveSink {
             view: view.clone(),
             shapes,
             metres_per_unit: 1.0 / model_units_per_metre as f32,
+            // Three quarters of the period: a sensor at exactly max_rate_hz, with its jitter, keeps
+            // every frame.
+            min_interval: if settings.max_rate_hz > 0.0 {
+                std::time::Duration::from_secs_f64(0.75 / settings.max_rate_hz)
+            } else {
+                std::time::Duration::ZERO
+            },
+            last_sent: HashMap::new(),
             dropped: 0,
         };
         sink.declare(streams)?;
@@ -202,6 +222,13 @@ impl FoxgloveSink {
         if !self.channels[&state.stream].watched() {
             return Ok(());
         }
+        let now = std::time::Instant::now();
+        if let Some(last) = self.last_sent.get(&state.stream) {
+            if now.duration_since(*last) < self.min_interval {
+                return Ok(());
+            }
+        }
+        self.last_sent.insert(state.stream.clone(), now);
         let shape = self.shapes.as_ref().and_then(|s| s.shape_for(state));
         let queue = self
             .queue
