@@ -6,8 +6,12 @@
 //!   and the direction of motion, with the front/back sense decided by accumulated evidence.
 //! - `pose`: one-euro smoothing of z_E and the rotation (and of the yaw, when `heading = "one-euro"`).
 //!
+//! - `association`: several objects in one stream, matched to tracks frame by frame (issue 34; not
+//!   yet wired into the pipeline).
+//!
 //! `StreamTracker` holds the three for one stream; the pipeline's track stage owns one per stream.
 
+pub mod association;
 pub mod heading;
 pub mod pose;
 mod settings;

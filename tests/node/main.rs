@@ -1,5 +1,6 @@
 //! The node's integration tests: one binary, a module per area, shared helpers.
 
+mod association;
 mod config;
 mod evaluate;
 mod files;
