@@ -15,6 +15,7 @@
 //! each source's sensor pose is the recording's `world_from_camera` (unless `--keep-sensor-pose`).
 
 pub mod metrics;
+pub mod mot;
 pub mod plot;
 pub mod print;
 pub mod truth;

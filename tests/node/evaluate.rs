@@ -321,3 +321,58 @@ fn window_spreads_are_the_rms_distance_from_each_window_mean() {
     assert!((window_spreads(&[(vec![0.0, 0.0], 1.0), (vec![3.0, 4.0], 1.0)], 2)[0].0 - 2.5).abs() < 1e-12);
     assert!(window_spreads(&run, 0).is_empty() && window_spreads(&run[..1], 2).is_empty());
 }
+
+/// CLEAR MOT and IDF1 on five frames counted by hand: two objects A and B; B missed in frame 1
+/// and found again in frame 2 (a fragmentation); A's track replaced by another id in frame 3 (an
+/// identity switch) while a stray hypothesis appears (a false positive); B leaves in frame 4.
+#[test]
+fn multi_object_counts_match_a_sequence_counted_by_hand() {
+    use gdvae_node::evaluate::mot::{mot_counts, Located, MotFrame};
+    let at = |id, x: f32, y: f32| Located {
+        id,
+        centre: [x, y, 0.0],
+    };
+    let (a, b) = (100, 200);
+    let frames = vec![
+        MotFrame {
+            truth: vec![at(a, 0.0, 0.0), at(b, 5.0, 0.0)],
+            hypotheses: vec![at(1, 0.1, 0.0), at(2, 5.0, 0.1)],
+        },
+        MotFrame {
+            truth: vec![at(a, 0.2, 0.0), at(b, 5.0, 0.0)],
+            hypotheses: vec![at(1, 0.3, 0.0)],
+        },
+        MotFrame {
+            truth: vec![at(a, 0.4, 0.0), at(b, 5.0, 0.0)],
+            hypotheses: vec![at(1, 0.5, 0.0), at(2, 5.0, 0.0)],
+        },
+        MotFrame {
+            truth: vec![at(a, 0.6, 0.0), at(b, 5.0, 0.0)],
+            hypotheses: vec![at(3, 0.6, 0.0), at(2, 5.0, 0.0), at(4, 9.0, 9.0)],
+        },
+        MotFrame {
+            truth: vec![at(a, 0.8, 0.0)],
+            hypotheses: vec![at(3, 0.8, 0.0)],
+        },
+    ];
+    let c = mot_counts(&frames, 0.5);
+    assert_eq!((c.frames, c.objects, c.hypotheses, c.matches), (5, 9, 9, 8));
+    assert_eq!(
+        (c.misses, c.false_positives, c.id_switches, c.fragmentations),
+        (1, 1, 1, 1)
+    );
+    assert!((c.mota - (1.0 - 3.0 / 9.0)).abs() < 1e-12, "{}", c.mota);
+    // IDF1: A with 1 (3 frames), B with 2 (3 frames); 3's two frames with A are identity errors.
+    assert_eq!((c.idtp, c.idfp, c.idfn), (6, 3, 3));
+    assert!((c.idf1 - 12.0 / 18.0).abs() < 1e-12, "{}", c.idf1);
+    // A perfect tracker: MOTA and IDF1 of 1.
+    let perfect: Vec<MotFrame> = frames
+        .iter()
+        .map(|f| MotFrame {
+            truth: f.truth.clone(),
+            hypotheses: f.truth.iter().map(|t| at(t.id + 1, t.centre[0], t.centre[1])).collect(),
+        })
+        .collect();
+    let c = mot_counts(&perfect, 0.5);
+    assert_eq!((c.mota, c.idf1, c.id_switches, c.fragmentations), (1.0, 1.0, 0, 0));
+}
