@@ -288,19 +288,74 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
         return 0;
     }
     let cells: Vec<[i64; 3]> = points.iter().map(|p| p.map(|c| floor(c / cell))).collect();
-    let keep = largest_cluster(points, &cells, radius * radius);
+    let (labels, count) = components(points, &cells, radius * radius);
+    // The largest cluster; of equal ones, the one holding the lowest point index.
+    let mut size = vec![0usize; count];
+    let mut first = vec![usize::MAX; count];
+    for (i, &l) in labels.iter().enumerate() {
+        size[l as usize] += 1;
+        first[l as usize] = first[l as usize].min(i);
+    }
+    let best = (0..count)
+        .max_by(|&a, &b| size[a].cmp(&size[b]).then(first[b].cmp(&first[a])))
+        .expect("at least one cluster") as u32;
+    let keep = labels.iter().map(|&l| l == best);
     let before = points.len();
-    let mut flags = keep.into_iter();
+    let mut flags = keep;
     points.retain(|_| flags.next().unwrap_or(false));
     before - points.len()
+}
+
+/// Every Euclidean cluster (as [`keep_largest_cluster`] finds them) of at least `min_points`
+/// points whose bounding box is at most `max_extent_m` on every side, largest first (of equal
+/// ones, the one holding the lowest point index first), at most `max_clusters` of them: the
+/// candidate objects of a frame.
+pub fn euclidean_clusters(
+    points: &[[f32; 3]],
+    radius: f32,
+    min_points: usize,
+    max_extent_m: f32,
+    max_clusters: usize,
+) -> Vec<Vec<[f32; 3]>> {
+    if points.is_empty() || !(radius > 0.0) {
+        return Vec::new();
+    }
+    let cell = radius / 3f32.sqrt();
+    const LIMIT: f32 = (1u64 << 40) as f32;
+    if points.iter().flatten().any(|c| !((c / cell).abs() < LIMIT)) {
+        return Vec::new();
+    }
+    let cells: Vec<[i64; 3]> = points.iter().map(|p| p.map(|c| floor(c / cell))).collect();
+    let (labels, count) = components(points, &cells, radius * radius);
+    let mut clusters: Vec<Vec<[f32; 3]>> = vec![Vec::new(); count];
+    for (p, &l) in points.iter().zip(&labels) {
+        clusters[l as usize].push(*p);
+    }
+    // Components are numbered in the order of their lowest point, so a stable sort by size keeps
+    // that order among equals.
+    clusters.sort_by_key(|c| std::cmp::Reverse(c.len()));
+    clusters
+        .into_iter()
+        .filter(|c| c.len() >= min_points.max(1))
+        .filter(|c| {
+            (0..3).all(|a| {
+                let (low, high) = c.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), p| {
+                    (l.min(p[a]), h.max(p[a]))
+                });
+                high - low <= max_extent_m
+            })
+        })
+        .take(max_clusters)
+        .collect()
 }
 
 /// Bits of a packed cell key per axis: differences below 2^41 cells fit, with room for the two
 /// cells either side.
 const FIELD: u32 = 42;
 
-/// Which points belong to the largest cluster, given each point's cell and the grid's low corner.
-fn largest_cluster(points: &[[f32; 3]], cells: &[[i64; 3]], radius_squared: f32) -> Vec<bool> {
+/// Each point's cluster (numbered 0.. in the order of each cluster's lowest point index) and the
+/// number of clusters, given each point's cell.
+fn components(points: &[[f32; 3]], cells: &[[i64; 3]], radius_squared: f32) -> (Vec<u32>, usize) {
     // Every cell's coordinates from the lowest corner (plus 2, so that a neighbour two cells lower
     // is >= 0) packed into one number, FIELD bits an axis, x first: sorted keys are in grid order,
     // and a neighbour's key is the cell's key plus the offset's.
@@ -392,22 +447,21 @@ fn largest_cluster(points: &[[f32; 3]], cells: &[[i64; 3]], radius_squared: f32)
             }
         }
     }
-    // The largest cluster; of equal ones, the one holding the lowest point index.
-    let mut size = vec![0usize; keys.len()];
-    let mut first = vec![usize::MAX; keys.len()];
+    // Each cell's root, then each point's cluster, numbered by first appearance in cloud order.
+    let mut labels = vec![u32::MAX; points.len()];
+    let mut cell_of = vec![0usize; points.len()];
     for a in 0..keys.len() {
         let r = root(&mut parent, a);
-        size[r] += start[a + 1] - start[a];
-        first[r] = first[r].min(order[start[a]].1 as usize);
+        members(a).for_each(|i| cell_of[i] = r);
     }
-    let best = (0..keys.len())
-        .max_by(|&a, &b| size[a].cmp(&size[b]).then(first[b].cmp(&first[a])))
-        .expect("at least one cell");
-    let mut keep = vec![false; points.len()];
-    for a in 0..keys.len() {
-        if root(&mut parent, a) == best {
-            members(a).for_each(|i| keep[i] = true);
+    let mut number = vec![u32::MAX; keys.len()];
+    let mut count = 0u32;
+    for (i, &r) in cell_of.iter().enumerate() {
+        if number[r] == u32::MAX {
+            number[r] = count;
+            count += 1;
         }
+        labels[i] = number[r];
     }
-    keep
+    (labels, count as usize)
 }

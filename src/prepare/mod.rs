@@ -13,8 +13,8 @@ mod sampling;
 mod settings;
 
 pub use filters::{
-    crop, fit_ground, keep_largest_cluster, levelling, remove_outliers, remove_plane, transform, transform_and_crop,
-    voxel_grid, Plane,
+    crop, euclidean_clusters, fit_ground, keep_largest_cluster, levelling, remove_outliers, remove_plane, transform,
+    transform_and_crop, voxel_grid, Plane,
 };
 pub use sampling::{
     centre_and_scale, farthest_point_sampling, farthest_point_sampling_plain, random_sampling, subsample,
@@ -152,6 +152,49 @@ impl Preparer {
     pub fn prepare_measured(&self, frame: &Frame, cpu: &mut [u64; STEPS.len()]) -> Result<Prepared, PrepareError> {
         let s = &self.settings;
         let mut clock = ThreadLap::start();
+        let (mut points, input, seed) = self.reduce(frame, cpu, &mut clock)?;
+        if s.cluster_m > 0.0 {
+            keep_largest_cluster(&mut points, s.cluster_m);
+        }
+        cpu[Step::Cluster as usize] += clock.lap();
+        let prepared = self.sample(&points, input, seed);
+        cpu[Step::Sample as usize] += clock.lap();
+        prepared
+    }
+
+    /// Every candidate object of a frame (several objects in view, issue 34): the same steps as
+    /// [`Preparer::prepare`], then each Euclidean cluster of at least `min_points` points and at
+    /// most `max_extent_m` on every side (largest first, at most `max_objects`) sampled, centred
+    /// and scaled on its own. With one object in view the first is what `prepare` gives. Without
+    /// clustering (`cluster_m = 0`), the one cloud; none when nothing passes.
+    pub fn prepare_all(
+        &self,
+        frame: &Frame,
+        max_extent_m: f32,
+        max_objects: usize,
+    ) -> Result<Vec<Prepared>, PrepareError> {
+        let s = &self.settings;
+        let (mut cpu, mut clock) = ([0; STEPS.len()], ThreadLap::start());
+        let (points, input, seed) = self.reduce(frame, &mut cpu, &mut clock)?;
+        if !(s.cluster_m > 0.0) {
+            return Ok(vec![self.sample(&points, input, seed)?]);
+        }
+        euclidean_clusters(&points, s.cluster_m, s.min_points, max_extent_m, max_objects)
+            .into_iter()
+            .enumerate()
+            .map(|(k, cluster)| self.sample(&cluster, if k == 0 { input.clone() } else { None }, seed))
+            .collect()
+    }
+
+    /// The steps before clustering: the points left, the decimated input copy and the frame's
+    /// seed.
+    fn reduce(
+        &self,
+        frame: &Frame,
+        cpu: &mut [u64; STEPS.len()],
+        clock: &mut ThreadLap,
+    ) -> Result<(Vec<[f32; 3]>, Option<Vec<[f32; 3]>>, u64), PrepareError> {
+        let s = &self.settings;
         let seed = s.seed ^ frame.sequence.wrapping_mul(0x9E37_79B9_7F4A_7C15);
         let to_metres = frame.unit.to_metres();
         let (rotation, translation) = self.per_stream.get(&frame.stream).unwrap_or(&self.sensor_to_gravity);
@@ -181,23 +224,22 @@ impl Preparer {
         cpu[Step::Reduce as usize] += clock.lap();
         remove_outliers(&mut points, &s.outliers);
         cpu[Step::Outliers as usize] += clock.lap();
-        if s.cluster_m > 0.0 {
-            keep_largest_cluster(&mut points, s.cluster_m);
-        }
-        cpu[Step::Cluster as usize] += clock.lap();
+        Ok((points, input, seed))
+    }
+
+    /// N_p points of `points`, centred and scaled.
+    fn sample(&self, points: &[[f32; 3]], input: Option<Vec<[f32; 3]>>, seed: u64) -> Result<Prepared, PrepareError> {
+        let s = &self.settings;
         let points_kept = points.len();
-        let chosen = subsample(&points, self.points, s.min_points, s.sampling, s.voxel_m, seed);
-        let prepared = chosen.map(|mut chosen| {
-            let centre_m = centre_and_scale(&mut chosen, self.model_units_per_metre);
-            Prepared {
-                points: chosen,
-                centre_m,
-                points_kept,
-                input,
-            }
-        });
-        cpu[Step::Sample as usize] += clock.lap();
-        prepared
+        let chosen = subsample(points, self.points, s.min_points, s.sampling, s.voxel_m, seed)?;
+        let mut chosen = chosen;
+        let centre_m = centre_and_scale(&mut chosen, self.model_units_per_metre);
+        Ok(Prepared {
+            points: chosen,
+            centre_m,
+            points_kept,
+            input,
+        })
     }
 
     /// The ground plane by RANSAC: levels the cloud on it (`auto_ground`), crops (after levelling)

@@ -4,8 +4,8 @@
 use gdvae_node::cloud::{Frame, PointCloud, Unit};
 use gdvae_node::config::{OutlierMethod, OutlierSettings, PrepareSettings};
 use gdvae_node::prepare::{
-    crop, fit_ground, levelling, remove_outliers, remove_plane, transform, transform_and_crop, voxel_grid,
-    PrepareError, Preparer,
+    crop, euclidean_clusters, fit_ground, keep_largest_cluster, levelling, remove_outliers, remove_plane, transform,
+    transform_and_crop, voxel_grid, PrepareError, Preparer,
 };
 use nalgebra::{Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
@@ -368,4 +368,78 @@ fn the_largest_cluster_of_a_cloud_spanning_a_huge_box_is_found_without_overflow(
     let mut far = vec![[0.0, 0.0, 0.0], [3e38, 0.0, 0.0]];
     assert_eq!(gdvae_node::prepare::keep_largest_cluster(&mut far, 0.06), 0);
     assert_eq!(far.len(), 2);
+}
+
+/// A blob of `n` points in a box of side `size` centred at `centre`.
+fn blob(rng: &mut ChaCha8Rng, centre: [f32; 3], size: f32, n: usize) -> Vec<[f32; 3]> {
+    (0..n)
+        .map(|_| std::array::from_fn(|a| centre[a] + rng.random_range(-size / 2.0..size / 2.0)))
+        .collect()
+}
+
+#[test]
+fn every_cluster_that_could_be_an_object_is_a_candidate_largest_first() {
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let mut points = blob(&mut rng, [0.0, 0.0, 0.4], 0.4, 800);
+    points.extend(blob(&mut rng, [1.5, 0.0, 0.4], 0.4, 1200));
+    points.extend(blob(&mut rng, [-1.5, 0.0, 0.4], 0.1, 20)); // too few points
+    points.extend((0..400).map(|i| [-1.0 + 0.01 * i as f32, 2.0, 0.5])); // a 4 m rail: too long
+    let clusters = euclidean_clusters(&points, 0.1, 50, 3.0, 8);
+    assert_eq!(clusters.iter().map(Vec::len).collect::<Vec<_>>(), vec![1200, 800]);
+    assert!(clusters[0].iter().all(|p| p[0] > 1.0) && clusters[1].iter().all(|p| p[0].abs() < 0.5));
+    assert_eq!(
+        euclidean_clusters(&points, 0.1, 50, 3.0, 1).len(),
+        1,
+        "at most max_clusters"
+    );
+    assert_eq!(
+        euclidean_clusters(&points, 0.1, 10, 5.0, 8).len(),
+        4,
+        "the small blob and the rail pass looser limits"
+    );
+    // The largest cluster is the one keep_largest_cluster keeps.
+    let mut largest = points.clone();
+    keep_largest_cluster(&mut largest, 0.1);
+    assert_eq!(largest, clusters[0]);
+}
+
+#[test]
+fn with_one_object_the_first_candidate_is_what_prepare_gives_and_with_two_each_is_centred_on_its_own() {
+    let mut rng = ChaCha8Rng::seed_from_u64(22);
+    let settings = PrepareSettings {
+        cluster_m: 0.1,
+        min_points: 50,
+        ..PrepareSettings::default()
+    };
+    let preparer = Preparer::new(&settings, 128, 2.0);
+    let frame = |points: Vec<[f32; 3]>| Frame {
+        stream: "s".into(),
+        sequence: 7,
+        sensor_stamp_ns: None,
+        ingested: std::time::Instant::now(),
+        ingest_unix_ns: 0,
+        unit: Unit::Metre,
+        cloud: PointCloud { points },
+        sensor_frame: None,
+    };
+    let one = frame(blob(&mut rng, [0.3, 0.2, 0.5], 0.4, 900));
+    let all = preparer.prepare_all(&one, 3.0, 4).unwrap();
+    let single = preparer.prepare(&one).unwrap();
+    assert_eq!(all.len(), 1);
+    assert_eq!(
+        (&all[0].points, all[0].centre_m, all[0].points_kept),
+        (&single.points, single.centre_m, single.points_kept)
+    );
+    let mut two = blob(&mut rng, [0.0, 0.0, 0.5], 0.4, 700);
+    two.extend(blob(&mut rng, [2.0, 1.0, 0.5], 0.4, 1000));
+    let all = preparer.prepare_all(&frame(two), 3.0, 4).unwrap();
+    assert_eq!(all.len(), 2);
+    for (prepared, centre) in all.iter().zip([[2.0, 1.0, 0.5], [0.0, 0.0, 0.5]]) {
+        assert_eq!(prepared.points.len(), 128);
+        assert!(
+            (0..3).all(|a| (prepared.centre_m[a] - centre[a]).abs() < 0.05),
+            "{:?}",
+            prepared.centre_m
+        );
+    }
 }
