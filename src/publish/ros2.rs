@@ -161,15 +161,29 @@ impl Ros2Sink {
         Ok(sink)
     }
 
-    fn declare(&mut self, topic: &str, message: &MessageType, qos: Qos) -> Result<Topic, PublishError> {
-        let (node, session) = (self.participant.node(), self.participant.session());
-        let token_key = node.entity_token(EntityKind::Publisher, self.participant.next_id(), topic, message, &qos);
-        let error = |e: zenoh::Error| PublishError::Ros2(format!("declaring {topic}: {e}"));
-        let token = session
+    /// A publisher's liveliness token (what `ros2 topic list` sees) and its GID.
+    fn publisher_token(
+        &self,
+        topic: &str,
+        message: &MessageType,
+        qos: &Qos,
+    ) -> Result<(zenoh::liveliness::LivelinessToken, [u8; 16]), PublishError> {
+        let node = self.participant.node();
+        let token_key = node.entity_token(EntityKind::Publisher, self.participant.next_id(), topic, message, qos);
+        let token = self
+            .participant
+            .session()
             .liveliness()
             .declare_token(token_key.clone())
             .wait()
-            .map_err(error)?;
+            .map_err(|e| PublishError::Ros2(format!("declaring {topic}: {e}")))?;
+        Ok((token, graph::gid(&token_key)))
+    }
+
+    fn declare(&mut self, topic: &str, message: &MessageType, qos: Qos) -> Result<Topic, PublishError> {
+        let (token, gid) = self.publisher_token(topic, message, &qos)?;
+        let (node, session) = (self.participant.node(), self.participant.session());
+        let error = |e: zenoh::Error| PublishError::Ros2(format!("declaring {topic}: {e}"));
         let publisher = session
             .declare_publisher(graph::topic_key(node.domain, topic, message))
             .congestion_control(self.congestion)
@@ -178,7 +192,7 @@ impl Ros2Sink {
         Ok(Topic {
             publisher,
             _token: token,
-            gid: graph::gid(&token_key),
+            gid,
             sequence: 0,
         })
     }
@@ -190,21 +204,10 @@ impl Ros2Sink {
             transient_local: true,
             depth: 1,
         };
-        let (node, session) = (self.participant.node(), self.participant.session());
         let message = &msg::TF_MESSAGE;
-        let token_key = node.entity_token(
-            EntityKind::Publisher,
-            self.participant.next_id(),
-            "/tf_static",
-            message,
-            &qos,
-        );
+        let (token, gid) = self.publisher_token("/tf_static", message, &qos)?;
+        let (node, session) = (self.participant.node(), self.participant.session());
         let error = |e: zenoh::Error| PublishError::Ros2(format!("declaring /tf_static: {e}"));
-        let token = session
-            .liveliness()
-            .declare_token(token_key.clone())
-            .wait()
-            .map_err(error)?;
         let publisher = session
             .declare_publisher(graph::topic_key(node.domain, "/tf_static", message))
             .congestion_control(CongestionControl::Drop)
@@ -219,7 +222,7 @@ impl Ros2Sink {
         Ok(StaticTf {
             publisher,
             _token: token,
-            gid: graph::gid(&token_key),
+            gid,
             sequence: 0,
             frames: Default::default(),
         })

@@ -12,6 +12,20 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 /// A 2 m x 2 m floor at z = 0 (2,500 points, 5 mm noise) and a 0.4 m cube of points above it.
+/// A frame of `points` on `stream`, as a source would hand it to prepare.
+fn frame_of(stream: &str, sequence: u64, unit: Unit, points: Vec<[f32; 3]>) -> Frame {
+    Frame {
+        stream: stream.into(),
+        sequence,
+        sensor_stamp_ns: None,
+        ingested: std::time::Instant::now(),
+        ingest_unix_ns: 0,
+        unit,
+        cloud: PointCloud { points },
+        sensor_frame: None,
+    }
+}
+
 fn scene(rng: &mut ChaCha8Rng) -> (Vec<[f32; 3]>, usize) {
     let mut points = Vec::new();
     for _ in 0..2500 {
@@ -201,16 +215,7 @@ fn the_preparer_converts_units_levels_crops_and_rejects_too_few_points() {
     let mut rng = ChaCha8Rng::seed_from_u64(4);
     let (points, _) = scene(&mut rng);
     let millimetres: Vec<[f32; 3]> = points.iter().map(|p| p.map(|c| c * 1000.0)).collect();
-    let frame = |points: Vec<[f32; 3]>, unit| Frame {
-        stream: "s".into(),
-        sequence: 3,
-        sensor_stamp_ns: None,
-        ingested: std::time::Instant::now(),
-        ingest_unix_ns: 0,
-        unit,
-        cloud: PointCloud { points },
-        sensor_frame: None,
-    };
+    let frame = |points: Vec<[f32; 3]>, unit| frame_of("s", 3, unit, points);
     let settings = PrepareSettings {
         remove_ground: true,
         crop: Some([-0.5, -0.5, -1.0, 0.5, 0.5, 1.0]),
@@ -266,16 +271,7 @@ fn a_source_can_carry_its_own_sensor_pose() {
     .collect();
     let preparer =
         Preparer::new(&PrepareSettings::default(), 256, 1.0).with_sensor_poses(sources.iter().map(|s| s.sensor_pose()));
-    let frame = |stream: &str| Frame {
-        stream: stream.into(),
-        sequence: 0,
-        sensor_stamp_ns: None,
-        ingested: std::time::Instant::now(),
-        ingest_unix_ns: 0,
-        unit: Unit::Metre,
-        cloud: PointCloud { points: points.clone() },
-        sensor_frame: None,
-    };
+    let frame = |stream: &str| frame_of(stream, 0, Unit::Metre, points.clone());
     let a = preparer.prepare(&frame("a")).unwrap();
     let b = preparer.prepare(&frame("b")).unwrap();
     assert!(
@@ -412,16 +408,7 @@ fn with_one_object_the_first_candidate_is_what_prepare_gives_and_with_two_each_i
         ..PrepareSettings::default()
     };
     let preparer = Preparer::new(&settings, 128, 2.0);
-    let frame = |points: Vec<[f32; 3]>| Frame {
-        stream: "s".into(),
-        sequence: 7,
-        sensor_stamp_ns: None,
-        ingested: std::time::Instant::now(),
-        ingest_unix_ns: 0,
-        unit: Unit::Metre,
-        cloud: PointCloud { points },
-        sensor_frame: None,
-    };
+    let frame = |points: Vec<[f32; 3]>| frame_of("s", 7, Unit::Metre, points);
     let one = frame(blob(&mut rng, [0.3, 0.2, 0.5], 0.4, 900));
     let all = preparer.prepare_all(&one, 3.0, 4).unwrap();
     let single = preparer.prepare(&one).unwrap();
