@@ -231,8 +231,7 @@ impl Preparer {
     fn sample(&self, points: &[[f32; 3]], input: Option<Vec<[f32; 3]>>, seed: u64) -> Result<Prepared, PrepareError> {
         let s = &self.settings;
         let points_kept = points.len();
-        let chosen = subsample(points, self.points, s.min_points, s.sampling, s.voxel_m, seed)?;
-        let mut chosen = chosen;
+        let mut chosen = subsample(points, self.points, s.min_points, s.sampling, s.voxel_m, seed)?;
         let centre_m = centre_and_scale(&mut chosen, self.model_units_per_metre);
         Ok(Prepared {
             points: chosen,
