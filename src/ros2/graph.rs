@@ -3,10 +3,12 @@
 //! publishers that wait for subscribers start), the QoS segment of a token, and the 33-byte
 //! attachment every data sample carries.
 //!
-//! Formats of rmw_zenoh_cpp in Jazzy >= 0.2.4, Kilted and Rolling (identical across the three):
-//! `liveliness_utils.cpp` (tokens, mangling, QoS), `TopicInfo` (data keys),
-//! `attachment_helpers.cpp` (attachment), `rmw_publisher_data.cpp` (GID). See
-//! `../shared/reference/ros2-over-zenoh.md` for the sources.
+//! Formats of rmw_zenoh_cpp in Jazzy >= 0.2.4, Kilted and Rolling: `liveliness_utils.cpp` (tokens,
+//! mangling, QoS), `TopicInfo` (data keys), `attachment_helpers.cpp` (attachment),
+//! `rmw_publisher_data.cpp` (GID). See `../shared/reference/ros2-over-zenoh.md` for the sources.
+//! Rolling and Lyrical from 0.10.5 add buffer-aware publishers (an optional field after the QoS in
+//! their tokens, extra `<key>/_buf_cpu` and `<key>/_buf/<gid>` data keys); the classic fields and key
+//! are unchanged, and the ROS 2 source reads the `_buf_cpu` key too.
 
 /// The liveliness tokens' admin space.
 pub const ADMIN_SPACE: &str = "@ros2_lv";
