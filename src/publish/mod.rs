@@ -183,6 +183,7 @@ impl Publisher {
                 streams,
                 shapes,
                 sensor_poses,
+                units,
                 participants,
                 lossless,
             )?));

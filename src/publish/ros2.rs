@@ -6,6 +6,8 @@
 //! | `<ns>/<stream>/pose` | geometry_msgs/msg/PoseStamped | the object's centre and filtered rotation in the gravity frame |
 //! | `/tf` | tf2_msgs/msg/TFMessage | gravity frame -> `<object_frame_prefix><stream>` |
 //! | `<ns>/<stream>/markers` | visualization_msgs/msg/MarkerArray | identity text, heading arrow, decoded canonical shape |
+//! | `<ns>/<stream>/detections` | vision_msgs/msg/Detection3DArray | the object: id (identity), score, pose, box |
+//! | `/tf_static` | tf2_msgs/msg/TFMessage | gravity frame -> each stream's sensor frame (transient local) |
 //! | `<ns>/<stream>/z_e`, `.../z_i` | std_msgs/msg/Float32MultiArray | filtered pose code, fused shape code |
 //! | `<ns>/<stream>/state`, `.../events`, `.../rejected` | std_msgs/msg/String | the `gdvae.state/1` JSON, identity events, rejections |
 //!
@@ -89,6 +91,7 @@ impl StaticTf {
 struct StreamTopics {
     pose: Topic,
     markers: Option<Topic>,
+    detections: Option<Topic>,
     z_e: Topic,
     z_i: Topic,
     state: Topic,
@@ -104,6 +107,8 @@ pub struct Ros2Sink {
     tf_static: Option<StaticTf>,
     /// Each stream's sensor pose (sensor -> gravity frame), where the configuration fixes it.
     sensor_poses: HashMap<String, Pose>,
+    /// The bundle's model units back to metres (the detection boxes).
+    metres_per_unit: f32,
     streams: HashMap<String, StreamTopics>,
     shapes: Option<Arc<ShapeWorker>>,
 }
@@ -114,6 +119,7 @@ impl Ros2Sink {
         streams: &[String],
         shapes: Option<Arc<ShapeWorker>>,
         sensor_poses: &HashMap<String, ([[f32; 3]; 3], [f32; 3])>,
+        model_units_per_metre: f64,
         participants: &Participants,
         lossless: bool,
     ) -> Result<Self, PublishError> {
@@ -139,6 +145,7 @@ impl Ros2Sink {
             tf: None,
             tf_static: None,
             sensor_poses: sensor_poses.iter().map(|(s, p)| (s.clone(), sensor_pose(p))).collect(),
+            metres_per_unit: 1.0 / model_units_per_metre as f32,
             streams: HashMap::new(),
             shapes,
         };
@@ -260,9 +267,10 @@ impl Ros2Sink {
                 depth: self.settings.depth,
             };
             let topic = |what: &str| self.settings.topic(stream, what);
-            let (pose, markers, z_e, z_i, state, events, rejected) = (
+            let (pose, markers, detections, z_e, z_i, state, events, rejected) = (
                 topic("pose"),
                 topic("markers"),
+                topic("detections"),
                 topic("z_e"),
                 topic("z_i"),
                 topic("state"),
@@ -273,6 +281,11 @@ impl Ros2Sink {
                 pose: self.declare(&pose, &msg::POSE_STAMPED, qos)?,
                 markers: if self.settings.markers {
                     Some(self.declare(&markers, &msg::MARKER_ARRAY, qos)?)
+                } else {
+                    None
+                },
+                detections: if self.settings.detections {
+                    Some(self.declare(&detections, &msg::DETECTION3D_ARRAY, qos)?)
                 } else {
                     None
                 },
@@ -304,6 +317,7 @@ impl Ros2Sink {
             orientation: [x, y, z, w],
         };
         let child = format!("{}{}", self.settings.object_frame_prefix, state.stream);
+        let metres_per_unit = self.metres_per_unit;
         if let Some(tf) = self.tf.as_mut() {
             tf.put(msg::tf_message(&[(header, &child, pose)]))?;
         }
@@ -319,11 +333,43 @@ impl Ros2Sink {
             let json = serde_json::to_string(&event).map_err(|e| PublishError::Encode(e.to_string()))?;
             topics.events.put(msg::string(&json))?;
         }
+        if let Some(detections) = topics.detections.as_mut() {
+            detections.put(detection_array(state, &header, &pose, metres_per_unit))?;
+        }
         if let Some(markers) = topics.markers.as_mut() {
             markers.put(marker_array(state, &header, &pose, shape.as_deref().map(Vec::as_slice)))?;
         }
         Ok(())
     }
+}
+
+/// The state's object as a `Detection3DArray` of one: id its identity, class "object" (the node
+/// does not classify), score its confidence, pose the estimated centre and rotation, box the
+/// extent of the points the encoder saw in the object's (canonical) frame.
+fn detection_array(state: &State, header: &Header, pose: &Pose, metres_per_unit: f32) -> Vec<u8> {
+    let [w, x, y, z] = state.filtered.q;
+    let to_object = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z)).inverse();
+    let mut low = [f32::INFINITY; 3];
+    let mut high = [f32::NEG_INFINITY; 3];
+    for p in state.prepared.as_deref().into_iter().flatten() {
+        let local = to_object * nalgebra::Vector3::from(*p);
+        for a in 0..3 {
+            low[a] = low[a].min(local[a]);
+            high[a] = high[a].max(local[a]);
+        }
+    }
+    let size = std::array::from_fn(|a| f64::from(((high[a] - low[a]) * metres_per_unit).max(0.0)));
+    let id = state.shape.identity.to_string();
+    msg::detection3d_array(
+        header,
+        &[msg::Detection {
+            id: &id,
+            class_id: "object",
+            score: f64::from(state.shape.confidence.clamp(0.0, 1.0)),
+            pose: *pose,
+            size,
+        }],
+    )
 }
 
 /// A sensor pose (rotation matrix, translation: sensor -> gravity) as the pose of the sensor's

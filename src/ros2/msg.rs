@@ -33,6 +33,12 @@ pub const STRING: MessageType = MessageType {
     name: "String",
     hash: "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18",
 };
+/// vision_msgs 4.1.1 (Jazzy's): the convention of ROS 2 perception nodes for 3D detections.
+pub const DETECTION3D_ARRAY: MessageType = MessageType {
+    package: "vision_msgs",
+    name: "Detection3DArray",
+    hash: "RIHS01_793f5eab9595ac1c0da07873cc859db42eae51f0ee76056db8562515d830e018",
+};
 pub const POINT_CLOUD2: MessageType = MessageType {
     package: "sensor_msgs",
     name: "PointCloud2",
@@ -152,6 +158,39 @@ pub fn pose_stamped(header: &Header, pose: &Pose) -> Vec<u8> {
     let mut w = CdrWriter::new();
     header.write(&mut w);
     pose.write(&mut w);
+    w.finish()
+}
+
+/// One object of a `vision_msgs/msg/Detection3DArray`.
+pub struct Detection<'a> {
+    /// The object's id (a track's, or its identity).
+    pub id: &'a str,
+    /// Its one hypothesis: a class name and a score in [0, 1].
+    pub class_id: &'a str,
+    pub score: f64,
+    /// The object's pose (the hypothesis' pose and the box's centre).
+    pub pose: Pose,
+    /// The box's size along the pose's axes (m).
+    pub size: [f64; 3],
+}
+
+/// `vision_msgs/msg/Detection3DArray`: each detection with the array's header, one
+/// `ObjectHypothesisWithPose` (covariance left zero: unknown) and its box.
+pub fn detection3d_array(header: &Header, detections: &[Detection]) -> Vec<u8> {
+    let mut w = CdrWriter::new();
+    header.write(&mut w);
+    w.length(detections.len());
+    for d in detections {
+        header.write(&mut w);
+        w.length(1);
+        w.string(d.class_id);
+        w.f64(d.score);
+        d.pose.write(&mut w);
+        (0..36).for_each(|_| w.f64(0.0));
+        d.pose.write(&mut w);
+        d.size.iter().for_each(|v| w.f64(*v));
+        w.string(d.id);
+    }
     w.finish()
 }
 

@@ -34,6 +34,9 @@ pub struct Ros2Settings {
     pub tf_static: bool,
     /// Publish markers for rviz2.
     pub markers: bool,
+    /// Publish `<ns>/<stream>/detections` (vision_msgs/msg/Detection3DArray, as ROS 2 perception
+    /// nodes do): the object's id, score, pose and box.
+    pub detections: bool,
     /// How often per stream the decoded canonical shape is refreshed (Hz; 0: no shape marker).
     pub shape_rate_hz: f64,
 }
@@ -53,6 +56,7 @@ impl Default for Ros2Settings {
             tf: true,
             tf_static: true,
             markers: true,
+            detections: true,
             shape_rate_hz: 1.0,
         }
     }
