@@ -206,13 +206,17 @@ def test_ros2_output_follows_rmw_zenoh_and_round_trips_through_rosbags(tmp_path)
     for sample in samples[f"{NAMESPACE}/{STREAM}/state"]:
         state = json.loads(STORE.deserialize_cdr(sample.payload.to_bytes(), "std_msgs/msg/String").data)
         states[state["stamps"]["sensor_ns"]] = state
-    stamp_ns = lambda h: h.stamp.sec * 1_000_000_000 + h.stamp.nanosec
+
+    def with_states(what, msgtype):
+        """The messages on <namespace>/<stream>/<what> whose header stamp is a state's, with it."""
+        for sample in samples[f"{NAMESPACE}/{STREAM}/{what}"]:
+            message = STORE.deserialize_cdr(sample.payload.to_bytes(), msgtype)
+            state = states.get(message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec)
+            if state is not None:
+                yield message, state
+
     matched = 0
-    for sample in samples[f"{NAMESPACE}/{STREAM}/pose"]:
-        pose = STORE.deserialize_cdr(sample.payload.to_bytes(), "geometry_msgs/msg/PoseStamped")
-        state = states.get(stamp_ns(pose.header))
-        if state is None:
-            continue
+    for pose, state in with_states("pose", "geometry_msgs/msg/PoseStamped"):
         matched += 1
         assert pose.header.frame_id == "world"
         assert [pose.pose.position.x, pose.pose.position.y, pose.pose.position.z] == \
@@ -223,11 +227,7 @@ def test_ros2_output_follows_rmw_zenoh_and_round_trips_through_rosbags(tmp_path)
     assert matched >= 20
     # Detections: one object, at the pose's centre and rotation, id its identity, a box of its size.
     detected = 0
-    for sample in samples[f"{NAMESPACE}/{STREAM}/detections"]:
-        array = STORE.deserialize_cdr(sample.payload.to_bytes(), "vision_msgs/msg/Detection3DArray")
-        state = states.get(stamp_ns(array.header))
-        if state is None:
-            continue
+    for array, state in with_states("detections", "vision_msgs/msg/Detection3DArray"):
         detected += 1
         assert array.header.frame_id == "world" and len(array.detections) == 1
         d = array.detections[0]
