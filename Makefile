@@ -1,5 +1,5 @@
 # The project's entry points. `make test` is what CI runs (.ci/run).
-.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking fuzz soak eval-split device-job
+.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking bench-multi fuzz soak eval-split device-job
 
 VENV := .venv
 PYTHON := $(VENV)/bin/python
@@ -36,6 +36,13 @@ bench-tracking: onnxruntime node sim
 	bench/tracking.sh tune
 	bench/tracking.sh holdout
 	bench/tracking.sh final
+
+# The multi-object benchmark's recordings and, so far, its candidate detection (docs/tracking.md
+# "Several objects"), on `tune` and `holdout`; `final` is measured once, by hand
+# (bench/multi_object.sh final). Recordings in /work/data/bench-multi, or $BENCH_DIR.
+bench-multi: sim
+	bench/multi_object.sh tune
+	bench/multi_object.sh holdout
 
 # The paper-structured evaluation set (models/README.md "Evaluation split"): 300 subjects per
 # family, one pose each, all in the test split, from a seed no training set uses.
