@@ -20,6 +20,16 @@ use gdvae_node::prepare::Preparer;
 use gdvae_node::sources::ros2::decode_point_cloud2;
 use gdvae_node::track::association::assign;
 
+/// Distance on the ground plane between two points' x, y.
+fn ground_distance(a: [f64; 2], b: [f64; 2]) -> f64 {
+    (a[0] - b[0]).hypot(a[1] - b[1])
+}
+
+/// A candidate's centre on the ground plane.
+fn ground(centre: [f32; 3]) -> [f64; 2] {
+    [centre[0] as f64, centre[1] as f64]
+}
+
 fn main() -> anyhow::Result<()> {
     let mut files = Vec::new();
     let (mut crop_half, mut match_m, mut min_visible) = (2.5f32, 0.5f64, 100u64);
@@ -103,8 +113,7 @@ fn main() -> anyhow::Result<()> {
                     found_here
                         .iter()
                         .map(|c| {
-                            let d =
-                                ((c.centre_m[0] as f64 - s[0]).powi(2) + (c.centre_m[1] as f64 - s[1]).powi(2)).sqrt();
+                            let d = ground_distance(ground(c.centre_m), *s);
                             if d <= match_m {
                                 d
                             } else {
@@ -123,10 +132,7 @@ fn main() -> anyhow::Result<()> {
                 }
                 let nearest = subjects
                     .iter()
-                    .map(|s| {
-                        ((candidate.centre_m[0] as f64 - s[0]).powi(2) + (candidate.centre_m[1] as f64 - s[1]).powi(2))
-                            .sqrt()
-                    })
+                    .map(|s| ground_distance(ground(candidate.centre_m), *s))
                     .fold(f64::INFINITY, f64::min);
                 if nearest < 1.0 {
                     spurious_near += 1;
@@ -140,7 +146,7 @@ fn main() -> anyhow::Result<()> {
                 let close = subjects
                     .iter()
                     .enumerate()
-                    .any(|(j, o)| j != i && ((o[0] - s[0]).powi(2) + (o[1] - s[1]).powi(2)).sqrt() < 1.0);
+                    .any(|(j, o)| j != i && ground_distance(*o, *s) < 1.0);
                 if close {
                     missed_close += 1;
                 } else {

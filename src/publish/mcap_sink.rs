@@ -49,23 +49,11 @@ pub struct McapSink {
     buffer: Vec<u8>,
 }
 
-/// A message's schema and encoding as the MCAP file declares them.
-struct Kind<'a> {
-    schema: Cow<'a, str>,
-    schema_encoding: &'a str,
-    schema_data: Cow<'a, [u8]>,
-    message_encoding: &'a str,
-}
-
-impl Kind<'static> {
-    fn json(schema: &'static str) -> Self {
-        Self {
-            schema: schema.into(),
-            schema_encoding: "jsonschema",
-            schema_data: json_schema(schema).into(),
-            message_encoding: "json",
-        }
-    }
+/// How a new channel is declared: its schema (name, encoding, data; None: no schema) and its
+/// messages' encoding. Made only when a topic's first message is written.
+struct Declaration {
+    schema: Option<(String, String, Cow<'static, [u8]>)>,
+    message_encoding: &'static str,
 }
 
 impl McapSink {
@@ -117,7 +105,11 @@ impl McapSink {
     ) -> Result<(), PublishError> {
         let data = serde_json::to_vec(message).map_err(|e| PublishError::Encode(e.to_string()))?;
         let topic = view::topic(stream, kind);
-        if let Err(e) = self.write_bytes(&topic, &Kind::json(schema), stamps, &data) {
+        let declare = || Declaration {
+            schema: Some((schema.to_string(), "jsonschema".into(), json_schema(schema).into())),
+            message_encoding: "json",
+        };
+        if let Err(e) = self.write_bytes(&topic, declare, stamps, &data) {
             self.close(e.to_string());
         }
         Ok(())
@@ -125,22 +117,17 @@ impl McapSink {
 
     /// Writes one of the view's messages on `/gdvae/<stream>/<kind>` under Foxglove's schema.
     fn write_view<T: Encode>(&mut self, stream: &str, kind: &str, stamps: &Stamps, message: &T) {
-        let Some(schema) = T::get_schema() else {
-            return;
-        };
         let mut buffer = std::mem::take(&mut self.buffer);
         buffer.clear();
         if let Err(e) = message.encode(&mut buffer) {
             log::warn!("MCAP sink {}: encoding {kind}: {e}", self.path);
             return;
         }
-        let kind_of = Kind {
-            schema: schema.name.into(),
-            schema_encoding: &schema.encoding,
-            schema_data: schema.data,
+        let declare = || Declaration {
+            schema: T::get_schema().map(|s| (s.name, s.encoding, s.data)),
             message_encoding: "protobuf",
         };
-        if let Err(e) = self.write_bytes(&view::topic(stream, kind), &kind_of, stamps, &buffer) {
+        if let Err(e) = self.write_bytes(&view::topic(stream, kind), declare, stamps, &buffer) {
             self.close(e.to_string());
         }
         self.buffer = buffer;
@@ -169,22 +156,30 @@ impl McapSink {
         self.write_view(stream, "scene", stamps, &scene.scene);
     }
 
-    fn write_bytes(&mut self, topic: &str, kind: &Kind, stamps: &Stamps, data: &[u8]) -> mcap::McapResult<()> {
+    fn write_bytes(
+        &mut self,
+        topic: &str,
+        declare: impl FnOnce() -> Declaration,
+        stamps: &Stamps,
+        data: &[u8],
+    ) -> mcap::McapResult<()> {
         let Some(writer) = self.writer.as_mut() else {
             return Ok(());
         };
         let (channel_id, sequence) = match self.channels.get_mut(topic) {
             Some(channel) => channel,
             None => {
-                let schema_id = match self.schemas.get(kind.schema.as_ref()) {
-                    Some(id) => *id,
-                    None => {
-                        let id = writer.add_schema(&kind.schema, kind.schema_encoding, &kind.schema_data)?;
-                        self.schemas.insert(kind.schema.to_string(), id);
+                let declaration = declare();
+                let schema_id = match declaration.schema {
+                    None => 0,
+                    Some((name, _, _)) if self.schemas.contains_key(&name) => self.schemas[&name],
+                    Some((name, encoding, data)) => {
+                        let id = writer.add_schema(&name, &encoding, &data)?;
+                        self.schemas.insert(name, id);
                         id
                     }
                 };
-                let id = writer.add_channel(schema_id, topic, kind.message_encoding, &BTreeMap::new())?;
+                let id = writer.add_channel(schema_id, topic, declaration.message_encoding, &BTreeMap::new())?;
                 self.channels.entry(topic.to_string()).or_insert((id, 0))
             }
         };

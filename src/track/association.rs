@@ -209,10 +209,11 @@ impl Associator {
             ids: vec![None; candidates.len()],
             events: Vec::new(),
         };
-        let mut taken = vec![false; candidates.len()];
+        // Each candidate's track, by key (indices move as tracks end and merge).
+        let mut key_of: Vec<Option<u64>> = vec![None; candidates.len()];
         let mut seen = vec![false; self.tracks.len()];
         for (t, c) in pairs {
-            taken[c] = true;
+            key_of[c] = Some(self.tracks[t].key);
             seen[t] = true;
             let candidate = &candidates[c];
             let track = &mut self.tracks[t];
@@ -274,9 +275,10 @@ impl Associator {
         self.gallery.retain(|e| time - e.last_seen <= memory_s);
         // New tentative tracks for what no track took.
         for (c, candidate) in candidates.iter().enumerate() {
-            if !taken[c] {
+            if key_of[c].is_none() {
                 let key = self.next_key;
                 self.next_key += 1;
+                key_of[c] = Some(key);
                 self.tracks.push(Track {
                     key,
                     id: None,
@@ -293,13 +295,8 @@ impl Associator {
                 }
             }
         }
-        // Each candidate's id: the track now at its position and time.
-        for (c, candidate) in candidates.iter().enumerate() {
-            result.ids[c] = self
-                .tracks
-                .iter()
-                .find(|t| t.last_seen == time && t.position == candidate.centre)
-                .and_then(|t| t.id);
+        for (id, key) in result.ids.iter_mut().zip(&key_of) {
+            *id = self.tracks.iter().find(|t| Some(t.key) == *key).and_then(|t| t.id);
         }
         result
     }
