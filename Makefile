@@ -109,6 +109,8 @@ $(VENV)/.installed: $(REQUIREMENTS)
 samples: sim
 	./target/release/sim record --out sim/samples/walk_switch.mcap --families quadruped,biped \
 		--duration 5 --switch-at 2.5 --decimation 2 --ground-extent 1.2 --camera-distance 2.6 --seed 0
+	./target/release/sim record --out sim/samples/two_subjects.mcap --families quadruped --others biped \
+		--motion walk --away 1:2-3.5 --duration 6 --decimation 2 --fps 10 --seed 11
 	for family in quadruped biped; do \
 		for pose in rest gaussian bent; do \
 			./target/release/sim mesh --family $$family --pose $$pose --subject-seed 1 --pose-seed 1 \

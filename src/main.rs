@@ -120,12 +120,19 @@ struct EvaluateArgs {
     config: PathBuf,
     #[arg(long)]
     bundle: Option<PathBuf>,
-    /// Override a track setting, e.g. `--set cusum_threshold=6` (repeatable; for tuning).
+    /// Override a track setting, e.g. `--set cusum_threshold=6` or `--set objects.enabled=true`
+    /// (repeatable; for tuning).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     set: Vec<String>,
     /// A true identity change counts as found when reported within this many frames.
     #[arg(long, default_value_t = 10)]
     tolerance_frames: usize,
+    /// Several objects: a track matches a subject within this horizontal distance (m).
+    #[arg(long, default_value_t = 0.5)]
+    mot_distance: f64,
+    /// Several objects: a subject with fewer points on it in a frame is ignored there.
+    #[arg(long, default_value_t = 200)]
+    mot_min_visible: usize,
     /// Keep the config's sensor pose instead of the recording's `world_from_camera`.
     #[arg(long)]
     keep_sensor_pose: bool,
@@ -450,6 +457,10 @@ fn evaluate(args: EvaluateArgs) -> Result<()> {
     let options = EvaluateOptions {
         tolerance_frames: args.tolerance_frames,
         pose_from_truth: !args.keep_sensor_pose,
+        objects: gdvae_node::evaluate::objects::ObjectsOptions {
+            max_distance_m: args.mot_distance,
+            min_visible_points: args.mot_min_visible,
+        },
         ..EvaluateOptions::default()
     };
     config.track = track_overrides(&config.track, &args.set)?;
@@ -521,10 +532,18 @@ fn track_overrides(
             .with_context(|| format!("--set {item}: not a value"))?
             .remove("v")
             .unwrap_or(toml::Value::Boolean(false));
-        if !table.contains_key(key) {
+        // `objects.gate_m=0.5`: a key of a table within [track].
+        let (within, key) = match key.split_once('.') {
+            Some((section, key)) => match table.get_mut(section) {
+                Some(toml::Value::Table(inner)) => (inner, key),
+                _ => bail!("--set {item}: [track] has no table '{section}'"),
+            },
+            None => (&mut table, key),
+        };
+        if !within.contains_key(key) {
             bail!("--set {item}: [track] has no key '{key}'");
         }
-        table.insert(key.to_string(), value);
+        within.insert(key.to_string(), value);
     }
     let settings: gdvae_node::config::TrackSettings =
         table.try_into().context("--set: the track settings do not parse")?;

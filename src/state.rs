@@ -1,13 +1,14 @@
-//! The published messages, schema `gdvae.state/1` (documented field by field in README.md).
+//! The published messages, schema `gdvae.state/2` (documented field by field in README.md).
 //!
-//! One `State` per encoded frame on `<prefix>/<node>/<stream>/state`; one `Rejected` per frame that
+//! One `State` per encoded frame on `<prefix>/<node>/<stream>/state` (with `[track.objects]
+//! enabled`, one per tracked object of the frame, each naming its `track`); one `Rejected` per frame that
 //! was not encoded on `<prefix>/<node>/<stream>/rejected`; one `Event` per identity change on
 //! `<prefix>/<node>/<stream>/event`. Adding a field is compatible; renaming or removing one bumps
 //! the version in `schema`.
 
 use serde::{Deserialize, Serialize};
 
-pub const STATE_SCHEMA: &str = "gdvae.state/1";
+pub const STATE_SCHEMA: &str = "gdvae.state/2";
 pub const REJECTED_SCHEMA: &str = "gdvae.rejected/1";
 pub const EVENT_SCHEMA: &str = "gdvae.event/1";
 
@@ -102,6 +103,10 @@ pub struct State {
     pub stream: String,
     /// The input frame's sequence number in its stream (0, 1, ...; rejections use numbers too).
     pub sequence: u64,
+    /// The object's track in its stream (`[track.objects] enabled`: ids from 1, kept while the
+    /// object is in view and given back when it returns); null when the node tracks the one
+    /// largest object of each frame.
+    pub track: Option<u64>,
     pub stamps: Stamps,
     pub latency: StageLatency,
     pub points: Points,
@@ -124,6 +129,11 @@ pub struct State {
     /// `/tf_static`; not part of the published message.
     #[serde(skip)]
     pub sensor_frame: Option<std::sync::Arc<str>>,
+    /// With several objects: this state's place among its frame's tracked objects (index,
+    /// count), for the sinks that publish a frame's objects together (ROS 2 detections); not part
+    /// of the published message.
+    #[serde(skip)]
+    pub of_frame: Option<(usize, usize)>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -144,6 +154,9 @@ pub struct Event {
     pub node: String,
     pub stream: String,
     pub sequence: u64,
+    /// The state's `track` (null with one object per stream).
+    #[serde(default)]
+    pub track: Option<u64>,
     pub stamps: Stamps,
     pub event: IdentityEvent,
 }
@@ -156,6 +169,15 @@ pub enum Output {
 }
 
 impl State {
+    /// The object this state is of: its stream, or with several objects `<stream>/<track>` (the
+    /// name of its frame and its drawings in the sinks).
+    pub fn object_name(&self) -> std::borrow::Cow<'_, str> {
+        match self.track {
+            None => std::borrow::Cow::Borrowed(&self.stream),
+            Some(track) => std::borrow::Cow::Owned(format!("{}/{track}", self.stream)),
+        }
+    }
+
     /// The identity event this state carries, as published on its own (`.../event`).
     pub fn event_message(&self) -> Option<Event> {
         self.event.as_ref().map(|event| Event {
@@ -163,6 +185,7 @@ impl State {
             node: self.node.clone(),
             stream: self.stream.clone(),
             sequence: self.sequence,
+            track: self.track,
             stamps: self.stamps.clone(),
             event: event.clone(),
         })

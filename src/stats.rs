@@ -85,6 +85,10 @@ pub struct StreamCounters {
     feed_gaps: AtomicU64,
     feed_gap_ms: AtomicU64,
     rejected: Mutex<BTreeMap<String, u64>>,
+    tracks_born: AtomicU64,
+    tracks_reidentified: AtomicU64,
+    tracks_ended: AtomicU64,
+    untracked: AtomicU64,
 }
 
 impl StreamCounters {
@@ -122,6 +126,20 @@ impl StreamCounters {
     pub fn publish_errors(&self) -> u64 {
         self.publish_errors.load(Ordering::Relaxed)
     }
+    /// A track born, re-identified or ended (`[track.objects] enabled`).
+    pub fn add_track_event(&self, event: &crate::track::association::TrackEvent) {
+        use crate::track::association::TrackEvent;
+        let counter = match event {
+            TrackEvent::Born { .. } => &self.tracks_born,
+            TrackEvent::Reidentified { .. } => &self.tracks_reidentified,
+            TrackEvent::Ended { .. } => &self.tracks_ended,
+        };
+        counter.fetch_add(1, Ordering::Relaxed);
+    }
+    /// A frame whose candidates all belonged to tentative tracks: encoded, no state published.
+    pub fn add_untracked(&self) {
+        self.untracked.fetch_add(1, Ordering::Relaxed);
+    }
     pub fn add_rejected(&self, stage: &str) {
         *self
             .rejected
@@ -148,6 +166,12 @@ pub struct StreamSnapshot {
     /// seconds it was silent in all.
     pub feed_gaps: u64,
     pub feed_gap_s: f64,
+    /// With `[track.objects] enabled`: tracks born, re-identified and ended, and frames encoded
+    /// whose candidates all belonged to tentative tracks (no state published for them).
+    pub tracks_born: u64,
+    pub tracks_reidentified: u64,
+    pub tracks_ended: u64,
+    pub frames_untracked: u64,
 }
 
 #[derive(Debug, Default)]
@@ -226,6 +250,10 @@ impl Stats {
                         non_finite_points: c.non_finite_points.load(Ordering::Relaxed),
                         feed_gaps: c.feed_gaps.load(Ordering::Relaxed),
                         feed_gap_s: c.feed_gap_ms.load(Ordering::Relaxed) as f64 / 1000.0,
+                        tracks_born: c.tracks_born.load(Ordering::Relaxed),
+                        tracks_reidentified: c.tracks_reidentified.load(Ordering::Relaxed),
+                        tracks_ended: c.tracks_ended.load(Ordering::Relaxed),
+                        frames_untracked: c.untracked.load(Ordering::Relaxed),
                     },
                 )
             })

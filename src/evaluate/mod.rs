@@ -16,6 +16,7 @@
 
 pub mod metrics;
 pub mod mot;
+pub mod objects;
 pub mod plot;
 pub mod print;
 pub mod truth;
@@ -45,6 +46,8 @@ pub struct EvaluateOptions {
     pub separability_frames: Vec<usize>,
     /// Take each source's sensor pose from the recording's ground truth (`world_from_camera`).
     pub pose_from_truth: bool,
+    /// How tracks are matched to subjects when the states name tracks (several objects).
+    pub objects: objects::ObjectsOptions,
 }
 
 impl Default for EvaluateOptions {
@@ -54,6 +57,7 @@ impl Default for EvaluateOptions {
             retrieval_frames: vec![1, 5, 30],
             separability_frames: vec![1, 10],
             pose_from_truth: true,
+            objects: objects::ObjectsOptions::default(),
         }
     }
 }
@@ -150,6 +154,8 @@ pub struct RecordingReport {
     pub pose_code: Option<PoseCodeMotion>,
     /// The same for the published (filtered) z_E, what a subscriber sees.
     pub pose_code_published: Option<PoseCodeMotion>,
+    /// With several objects (states that name tracks): the tracks against every subject.
+    pub objects: Option<objects::ObjectsReport>,
     #[serde(skip)]
     pub rows: Vec<Row>,
     /// What `pose_code` and `pose_code_published` were computed from, pooled by `Overall`.
@@ -211,6 +217,8 @@ pub struct Overall {
     pub pose_code: PoseCodeMotion,
     /// The same for the published (filtered) z_E.
     pub pose_code_published: PoseCodeMotion,
+    /// With several objects: the multi-object figures pooled over the recordings.
+    pub objects: Option<objects::ObjectsReport>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -218,6 +226,7 @@ pub struct Report {
     pub schema: &'static str,
     pub convention: &'static str,
     pub tolerance_frames: usize,
+    pub objects_options: objects::ObjectsOptions,
     pub overall: Overall,
     pub recordings: Vec<RecordingReport>,
 }
@@ -241,8 +250,17 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
     let mut raw_pose_all = PoseCodeSamples::default();
     let mut published_pose_all = PoseCodeSamples::default();
     for recording in recordings {
-        let own = states.get(recording.stream.as_str()).cloned().unwrap_or_default();
-        let (report, own_segments) = recording_report(
+        let mut own = states.get(recording.stream.as_str()).cloned().unwrap_or_default();
+        // Several objects: the tracks against every subject; the single-object figures below
+        // then measure the tracks matched to the primary subject.
+        let several = own.iter().any(|s| s.track.is_some()) && !recording.truth.is_empty();
+        let objects = several.then(|| {
+            let truth = with_subjects(&recording.truth);
+            let (report, matches) = objects::objects_report(&truth, &own, &options.objects);
+            own = matches.iter().filter_map(|m| m.get(&0).copied()).collect();
+            report
+        });
+        let (mut report, own_segments) = recording_report(
             recording,
             &own,
             rejected.get(recording.stream.as_str()).copied(),
@@ -263,6 +281,7 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
                 .push(row.filtered_yaw - row.true_yaw);
             position_all.push(row.position_m);
         }
+        report.objects = objects;
         segments.extend(own_segments);
         raw_pose_all.extend(&report.raw_pose_samples);
         published_pose_all.extend(&report.published_pose_samples);
@@ -298,14 +317,41 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
             .collect(),
         pose_code: raw_pose_all.motion(),
         pose_code_published: published_pose_all.motion(),
+        objects: {
+            let several: Vec<&objects::ObjectsReport> = reports.iter().filter_map(|r| r.objects.as_ref()).collect();
+            (!several.is_empty()).then(|| objects::pooled(&several))
+        },
     };
     Report {
         schema: "gdvae.evaluate/1",
         convention: CONVENTION,
         tolerance_frames: options.tolerance_frames,
+        objects_options: options.objects,
         overall,
         recordings: reports,
     }
+}
+
+/// `truth` with every frame's `subjects` (a recording of one subject lists none: its primary).
+fn with_subjects(truth: &[TruthFrame]) -> Vec<TruthFrame> {
+    truth
+        .iter()
+        .map(|t| {
+            let mut t = t.clone();
+            if t.subjects.is_empty() {
+                t.subjects.push(truth::SubjectTruth {
+                    id: 0,
+                    present: true,
+                    visible_points: usize::MAX,
+                    subject: t.subject.clone(),
+                    family: t.family.clone(),
+                    yaw: t.yaw,
+                    translation: t.translation,
+                });
+            }
+            t
+        })
+        .collect()
 }
 
 fn horizontal_distance(state: &State, truth: &TruthFrame) -> f64 {
@@ -424,6 +470,7 @@ fn recording_report(
         rows,
         raw_pose_samples: raw_pose,
         published_pose_samples: published_pose,
+        objects: None,
     };
     (report, segments)
 }

@@ -143,6 +143,69 @@ pub fn print(report: &Report, summary: &RunSummary) {
             p.standing_windows,
         );
     }
+    if let Some(pooled) = &o.objects {
+        println!(
+            "several objects (a track matches a subject within {} m; subjects with fewer than {} visible points ignored):",
+            report.objects_options.max_distance_m, report.objects_options.min_visible_points
+        );
+        println!(
+            "  {:<22} {:>6} {:>7} {:>6} {:>6} {:>5} {:>5} {:>6} {:>5} {:>6} {:>12} {:>13}",
+            "recording", "frames", "objects", "MOTA", "IDF1", "IDsw", "frag", "misses", "FP", "tracks", "returns same", "yaw med/p90"
+        );
+        let line = |name: &str, r: &super::objects::ObjectsReport| {
+            let m = &r.mot;
+            let returns = &r.returns;
+            println!(
+                "  {:<22} {:>6} {:>7} {:>6} {:>6} {:>5} {:>5} {:>6} {:>5} {:>6} {:>12} {:>13}",
+                name,
+                m.frames,
+                m.objects,
+                fmt_opt(Some(m.mota), 1.0, 3),
+                fmt_opt(Some(m.idf1), 1.0, 3),
+                m.id_switches,
+                m.fragmentations,
+                m.misses,
+                m.false_positives,
+                r.tracks,
+                format!(
+                    "{}/{}, {}/{}",
+                    returns.other_family_same_id, returns.other_family, returns.same_family_same_id, returns.same_family
+                ),
+                format!(
+                    "{}/{}",
+                    fmt_opt(r.heading_filtered.median_deg, 1.0, 1),
+                    fmt_opt(r.heading_filtered.p90_deg, 1.0, 1)
+                )
+            );
+        };
+        for r in &report.recordings {
+            if let Some(objects) = &r.objects {
+                line(&r.stream, objects);
+            }
+        }
+        line("all", pooled);
+        println!(
+            "  ID switches per 1000 frames: {}; returns that got their id back: {}/{} with only the other family \
+             in the scene, {}/{} with the same family",
+            fmt_opt(Some(pooled.id_switches_per_1000_frames), 1.0, 2),
+            pooled.returns.other_family_same_id,
+            pooled.returns.other_family,
+            pooled.returns.same_family_same_id,
+            pooled.returns.same_family
+        );
+        let c = summary.snapshot.streams.values();
+        let (born, back, ended, untracked) = c.fold((0, 0, 0, 0), |a, c| {
+            (
+                a.0 + c.tracks_born,
+                a.1 + c.tracks_reidentified,
+                a.2 + c.tracks_ended,
+                a.3 + c.frames_untracked,
+            )
+        });
+        println!(
+            "  tracks: {born} born, {back} re-identified, {ended} ended; {untracked} frames had no confirmed track"
+        );
+    }
     let states: u64 = summary.snapshot.streams.values().map(|c| c.published).sum();
     println!(
         "  replay: {states} states in {:.1} s ({:.1} frames/s)",

@@ -21,6 +21,25 @@ pub struct TruthFrame {
     /// Where the subject stands (m, world frame; z = 0 on the ground).
     pub translation: [f64; 3],
     pub world_from_camera: Option<WorldFromCamera>,
+    /// Every subject of the scene, the primary (the fields above) first; empty in recordings made
+    /// before the sim had several subjects.
+    #[serde(default)]
+    pub subjects: Vec<SubjectTruth>,
+}
+
+/// One subject's ground truth in one frame (scenes with several subjects).
+#[derive(Debug, Clone, Deserialize, Serialize)]
+pub struct SubjectTruth {
+    /// The subject's place in the scene (0: the primary), constant over the recording.
+    pub id: u64,
+    /// In the scene (false while it has left the view).
+    pub present: bool,
+    /// Points of this frame's cloud on the subject.
+    pub visible_points: usize,
+    pub subject: String,
+    pub family: String,
+    pub yaw: f64,
+    pub translation: [f64; 3],
 }
 
 #[derive(Debug, Clone, Copy, Deserialize, Serialize)]

@@ -230,9 +230,10 @@ pub fn run(
     }
     for worker in 0..config.pipeline.prepare_workers {
         let (rx, tx, preparer, stats) = (prepare_rx.clone(), work_tx.clone(), preparer.clone(), stats.clone());
+        let objects = config.track.objects.enabled.then(|| config.track.objects.clone());
         threads.push(spawn(
             format!("prepare:{worker}"),
-            Box::new(move || prepare(rx, tx, &preparer, &stats)),
+            Box::new(move || prepare(rx, tx, &preparer, objects.as_ref(), &stats)),
         )?);
     }
     drop((prepare_rx, work_tx));

@@ -10,12 +10,14 @@ use crossbeam_channel::{Receiver, Select, Sender};
 use super::work::*;
 use crate::config::Config;
 use crate::contain::contained;
-use crate::prepare::{Preparer, STEPS};
+use crate::encoding::Encoding;
+use crate::prepare::{Prepared, Preparer, STEPS};
 use crate::runtime::Encoder;
 use crate::sources::Ingest;
 use crate::state::{self, Output};
 use crate::stats::Stats;
-use crate::track::{Observed, StreamTracker};
+use crate::track::association::{AssociationSettings, Candidate, TrackEvent};
+use crate::track::{ObjectTracks, Observed, StreamTracker};
 
 /// Reads every source channel; gives each item its ticket. Ends when every source has ended, or
 /// after stop once the live sources' queues are empty.
@@ -56,22 +58,42 @@ pub(super) fn ingest(
     }
 }
 
-pub(super) fn prepare(rx: Receiver<Ticketed<Ingest>>, tx: Sender<Ticketed<Work>>, preparer: &Preparer, stats: &Stats) {
+/// Prepares each frame: its largest cluster, or with `objects` (`[track.objects]` enabled) every
+/// cluster that could be an object; a frame with none is rejected.
+pub(super) fn prepare(
+    rx: Receiver<Ticketed<Ingest>>,
+    tx: Sender<Ticketed<Work>>,
+    preparer: &Preparer,
+    objects: Option<&AssociationSettings>,
+    stats: &Stats,
+) {
     for (ticket, item) in rx {
         let work = match item {
             Ingest::Rejected(r) => Work::Rejected(r),
             Ingest::Frame(frame) => {
                 let start = Instant::now();
                 let mut cpu = [0; STEPS.len()];
-                let result = contained("prepare", || preparer.prepare_measured(&frame, &mut cpu));
+                let result = contained("prepare", || match objects {
+                    None => preparer.prepare_measured(&frame, &mut cpu).map(|p| vec![p]),
+                    Some(o) => preparer.prepare_all_measured(&frame, o.max_extent_m, o.max_objects, &mut cpu),
+                });
                 let prepare_ms = ms_since(start);
                 stats.record("prepare", prepare_ms);
                 stats.add_cpu(&std::array::from_fn::<_, { STEPS.len() }, _>(|i| (STEPS[i], cpu[i])));
                 match result {
                     Err(message) => Work::Rejected(origin_of(&frame).reject("prepare", message)),
-                    Ok(Ok(prepared)) => Work::Frame(PreparedFrame {
+                    Ok(Ok(found)) if found.is_empty() => Work::Rejected(origin_of(&frame).reject(
+                        "prepare",
+                        format!(
+                            "{} points received: no object (no cluster of at least {} points within {} m)",
+                            frame.cloud.len(),
+                            preparer.min_points(),
+                            objects.map_or(f32::INFINITY, |o| o.max_extent_m)
+                        ),
+                    )),
+                    Ok(Ok(found)) => Work::Frame(PreparedFrame {
                         origin: origin_of(&frame),
-                        prepared,
+                        objects: found,
                         prepare_ms,
                         prepared_at: Instant::now(),
                     }),
@@ -166,37 +188,16 @@ pub(super) fn encode(
 ) {
     for batch in rx {
         let start = Instant::now();
-        let clouds: Vec<&[[f32; 3]]> = batch.iter().map(|(_, f)| f.prepared.points.as_slice()).collect();
+        // Every candidate object of every frame in one call.
+        let clouds: Vec<&[[f32; 3]]> = batch
+            .iter()
+            .flat_map(|(_, f)| f.objects.iter().map(|p| p.points.as_slice()))
+            .collect();
         let result = contained("encode", || encoder.encode(&clouds)).and_then(|r| r.map_err(|e| e.to_string()));
         let encode_ms = ms_since(start);
         stats.record("encode", encode_ms);
-        match result {
-            Ok(encodings) => {
-                for ((ticket, frame), encoding) in batch.into_iter().zip(encodings) {
-                    if !encoding.is_finite() {
-                        let rejection = frame
-                            .origin
-                            .reject("encode", "the encoder's output is not finite".into());
-                        if tx.send((ticket, Done::Rejected(rejection))).is_err() {
-                            return;
-                        }
-                        continue;
-                    }
-                    let queue_ms = (start - frame.prepared_at).as_secs_f32() * 1000.0;
-                    stats.record("queue", queue_ms);
-                    let encoded = EncodedFrame {
-                        origin: frame.origin,
-                        prepared: frame.prepared,
-                        encoding,
-                        prepare_ms: frame.prepare_ms,
-                        queue_ms,
-                        encode_ms,
-                    };
-                    if tx.send((ticket, Done::Encoded(Box::new(encoded)))).is_err() {
-                        return;
-                    }
-                }
-            }
+        let mut encodings = match result {
+            Ok(encodings) => encodings.into_iter(),
             Err(e) => {
                 for (ticket, frame) in batch {
                     let rejection = frame.origin.reject("encode", e.clone());
@@ -204,6 +205,26 @@ pub(super) fn encode(
                         return;
                     }
                 }
+                continue;
+            }
+        };
+        for (ticket, frame) in batch {
+            let objects: Vec<(Prepared, Encoding)> = frame.objects.into_iter().zip(encodings.by_ref()).collect();
+            let done = if objects.iter().any(|(_, e)| !e.is_finite()) {
+                Done::Rejected(frame.origin.reject("encode", "the encoder's output is not finite".into()))
+            } else {
+                let queue_ms = (start - frame.prepared_at).as_secs_f32() * 1000.0;
+                stats.record("queue", queue_ms);
+                Done::Encoded(Box::new(EncodedFrame {
+                    origin: frame.origin,
+                    objects,
+                    prepare_ms: frame.prepare_ms,
+                    queue_ms,
+                    encode_ms,
+                }))
+            };
+            if tx.send((ticket, done)).is_err() {
+                return;
             }
         }
     }
@@ -211,7 +232,10 @@ pub(super) fn encode(
 
 /// Per-stream state of the track stage: the filters and the bookkeeping around them.
 pub(super) struct Stream {
+    /// The one object's filters (unless several objects are tracked).
     tracker: StreamTracker,
+    /// The tracks and their filters, with `[track.objects] enabled`.
+    objects: Option<ObjectTracks>,
     last_stamp_ns: Option<u64>,
     rejections_logged: u64,
 }
@@ -227,7 +251,6 @@ pub(super) fn track(
     let mut trackers: HashMap<String, Stream> = HashMap::new();
     let settings = &config.track;
     let node = config.node.name.clone();
-    let nominal_dt = 1.0 / settings.nominal_rate_hz;
     for (ticket, done) in rx {
         pending.insert(ticket, done);
         while let Some(done) = pending.remove(&next) {
@@ -240,10 +263,11 @@ pub(super) fn track(
             };
             let tracker = trackers.entry(stream.clone()).or_insert_with(|| Stream {
                 tracker: StreamTracker::new(settings),
+                objects: settings.objects.enabled.then(|| ObjectTracks::new(settings)),
                 last_stamp_ns: None,
                 rejections_logged: 0,
             });
-            let output = match done {
+            let outputs = match done {
                 Done::Rejected(r) => {
                     stats.stream(&r.stream).add_rejected(r.stage);
                     tracker.rejections_logged += 1;
@@ -257,54 +281,25 @@ pub(super) fn track(
                             r.reason
                         );
                     }
-                    rejected_output(&node, r)
-                }
-                Done::Encoded(mut frame) => {
-                    let dt = match (frame.origin.sensor_stamp_ns, tracker.last_stamp_ns) {
-                        (Some(now), Some(last)) if now > last && now - last < 1_000_000_000 => {
-                            (now - last) as f32 * 1e-9
-                        }
-                        _ => nominal_dt,
-                    };
-                    if frame.origin.sensor_stamp_ns.is_some() {
-                        tracker.last_stamp_ns = frame.origin.sensor_stamp_ns;
+                    if let Some(objects) = tracker.objects.as_mut() {
+                        // No candidates this frame: the tracks age all the same.
+                        let time = seconds(r.sensor_stamp_ns, r.ingest_unix_ns);
+                        let (_, events) = objects.associate(time, &[]);
+                        report_events(&r.stream, r.sequence, &events, stats);
                     }
-                    let observed = Observed {
-                        stream: &frame.origin.stream,
-                        sequence: frame.origin.sequence,
-                        sensor_stamp_ns: frame.origin.sensor_stamp_ns,
-                        ingest_unix_ns: frame.origin.ingest_unix_ns,
-                        points_received: frame.origin.points_received,
-                        points_kept: frame.prepared.points_kept,
-                        centre_m: frame.prepared.centre_m,
-                        encoding: &frame.encoding,
-                        latency: state::StageLatency {
-                            prepare_ms: frame.prepare_ms,
-                            queue_ms: frame.queue_ms,
-                            encode_ms: frame.encode_ms,
-                            total_ms: 0.0, // measured by the publisher
-                        },
-                    };
-                    match contained("track", || tracker.tracker.state(&node, &observed, dt)) {
-                        Ok(mut state) => {
-                            state.prepared = Some(std::sync::Arc::new(std::mem::take(&mut frame.prepared.points)));
-                            state.input = frame.prepared.input.take().map(std::sync::Arc::new);
-                            state.sensor_frame = frame.origin.sensor_frame.clone();
-                            Output::State(Box::new(state))
-                        }
-                        Err(message) => {
-                            // The stream's filters may be half updated: start them afresh.
-                            tracker.tracker = StreamTracker::new(settings);
-                            stats.stream(&frame.origin.stream).add_rejected("track");
-                            rejected_output(&node, frame.origin.reject("track", message))
-                        }
-                    }
+                    vec![rejected_output(&node, r)]
                 }
+                Done::Encoded(frame) => match tracker.objects.as_mut() {
+                    Some(objects) => several_objects(objects, *frame, &node, stats),
+                    None => vec![one_object(tracker, *frame, &node, settings, stats)],
+                },
             };
             stats.record("track", ms_since(start));
             stats.add_cpu(&[("track", cpu.lap())]);
-            if tx.send((output, Instant::now(), ingested)).is_err() {
-                return;
+            for output in outputs {
+                if tx.send((output, Instant::now(), ingested)).is_err() {
+                    return;
+                }
             }
         }
     }
@@ -313,6 +308,125 @@ pub(super) fn track(
             "track: {} items never reached their turn (ticket {next} missing)",
             pending.len()
         );
+    }
+}
+
+/// A frame's time (s): its sensor stamp, else when it was ingested.
+fn seconds(sensor_stamp_ns: Option<u64>, ingest_unix_ns: u64) -> f64 {
+    sensor_stamp_ns.unwrap_or(ingest_unix_ns) as f64 * 1e-9
+}
+
+/// What the filters see of one encoded object.
+fn observed<'a>(frame: &'a EncodedFrame, prepared: &Prepared, encoding: &'a Encoding) -> Observed<'a> {
+    Observed {
+        stream: &frame.origin.stream,
+        sequence: frame.origin.sequence,
+        sensor_stamp_ns: frame.origin.sensor_stamp_ns,
+        ingest_unix_ns: frame.origin.ingest_unix_ns,
+        points_received: frame.origin.points_received,
+        points_kept: prepared.points_kept,
+        centre_m: prepared.centre_m,
+        encoding,
+        latency: state::StageLatency {
+            prepare_ms: frame.prepare_ms,
+            queue_ms: frame.queue_ms,
+            encode_ms: frame.encode_ms,
+            total_ms: 0.0, // measured by the publisher
+        },
+    }
+}
+
+/// The state of the one object of `frame` (the largest cluster), through the stream's filters.
+fn one_object(
+    stream: &mut Stream,
+    mut frame: EncodedFrame,
+    node: &str,
+    settings: &crate::track::TrackSettings,
+    stats: &Stats,
+) -> Output {
+    let nominal_dt = 1.0 / settings.nominal_rate_hz;
+    let dt = match (frame.origin.sensor_stamp_ns, stream.last_stamp_ns) {
+        (Some(now), Some(last)) if now > last && now - last < 1_000_000_000 => (now - last) as f32 * 1e-9,
+        _ => nominal_dt,
+    };
+    if frame.origin.sensor_stamp_ns.is_some() {
+        stream.last_stamp_ns = frame.origin.sensor_stamp_ns;
+    }
+    let (mut prepared, encoding) = frame.objects.pop().expect("prepare passes on a frame with an object");
+    let observed = observed(&frame, &prepared, &encoding);
+    match contained("track", || stream.tracker.state(node, &observed, dt)) {
+        Ok(mut state) => {
+            state.prepared = Some(std::sync::Arc::new(std::mem::take(&mut prepared.points)));
+            state.input = prepared.input.take().map(std::sync::Arc::new);
+            state.sensor_frame = frame.origin.sensor_frame.clone();
+            Output::State(Box::new(state))
+        }
+        Err(message) => {
+            // The stream's filters may be half updated: start them afresh.
+            stream.tracker = StreamTracker::new(settings);
+            stats.stream(&frame.origin.stream).add_rejected("track");
+            rejected_output(node, frame.origin.reject("track", message))
+        }
+    }
+}
+
+/// The states of every tracked object of `frame`: its candidates associated with the stream's
+/// tracks, each confirmed track's candidate through that track's filters. A frame whose
+/// candidates all belong to tentative tracks publishes nothing (counted).
+fn several_objects(objects: &mut ObjectTracks, frame: EncodedFrame, node: &str, stats: &Stats) -> Vec<Output> {
+    let origin = &frame.origin;
+    let candidates: Vec<Candidate> = frame
+        .objects
+        .iter()
+        .map(|(prepared, encoding)| Candidate {
+            centre: prepared.centre_m,
+            z_i: encoding.z_i_mean.clone(),
+        })
+        .collect();
+    let time = seconds(origin.sensor_stamp_ns, origin.ingest_unix_ns);
+    let (tracked, events) = objects.associate(time, &candidates);
+    report_events(&origin.stream, origin.sequence, &events, stats);
+    if tracked.is_empty() {
+        stats.stream(&origin.stream).add_untracked();
+        return Vec::new();
+    }
+    let count = tracked.len();
+    let mut outputs = Vec::with_capacity(count);
+    for (index, t) in tracked.iter().enumerate() {
+        let (prepared, encoding) = &frame.objects[t.candidate];
+        let observed = observed(&frame, prepared, encoding);
+        match contained("track", || objects.filters(t.id).state(node, &observed, t.dt)) {
+            Ok(mut state) => {
+                state.track = Some(t.id);
+                state.of_frame = Some((index, count));
+                state.prepared = Some(std::sync::Arc::new(prepared.points.clone()));
+                state.input = prepared.input.clone().map(std::sync::Arc::new);
+                state.sensor_frame = origin.sensor_frame.clone();
+                outputs.push(Output::State(Box::new(state)));
+            }
+            Err(message) => {
+                objects.restart(t.id);
+                stats.stream(&origin.stream).add_rejected("track");
+                let reason = format!("track {}: {message}", t.id);
+                outputs.push(rejected_output(node, origin.clone().reject("track", reason)));
+            }
+        }
+    }
+    outputs
+}
+
+/// Logs and counts what happened to a stream's tracks.
+fn report_events(stream: &str, sequence: u64, events: &[TrackEvent], stats: &Stats) {
+    let counters = stats.stream(stream);
+    for event in events {
+        counters.add_track_event(event);
+        match event {
+            TrackEvent::Born { id } => log::info!("stream '{stream}' frame {sequence}: track {id} born"),
+            TrackEvent::Reidentified { id, away_s } => {
+                log::info!("stream '{stream}' frame {sequence}: track {id} back after {away_s:.1} s")
+            }
+            TrackEvent::Ended { id } => log::info!("stream '{stream}' frame {sequence}: track {id} ended (unseen)"),
+        }
     }
 }
 

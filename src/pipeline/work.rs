@@ -20,17 +20,19 @@ pub(super) struct Origin {
     pub(super) sensor_frame: Option<std::sync::Arc<str>>,
 }
 
+/// A frame's candidate objects, prepared: one (the largest cluster) unless `[track.objects]` is
+/// enabled.
 pub(super) struct PreparedFrame {
     pub(super) origin: Origin,
-    pub(super) prepared: Prepared,
+    pub(super) objects: Vec<Prepared>,
     pub(super) prepare_ms: f32,
     pub(super) prepared_at: Instant,
 }
 
 pub(super) struct EncodedFrame {
     pub(super) origin: Origin,
-    pub(super) prepared: Prepared,
-    pub(super) encoding: Encoding,
+    /// Each candidate object with its encoding, in the order prepare found them.
+    pub(super) objects: Vec<(Prepared, Encoding)>,
     pub(super) prepare_ms: f32,
     pub(super) queue_ms: f32,
     pub(super) encode_ms: f32,

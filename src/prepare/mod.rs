@@ -143,6 +143,11 @@ impl Preparer {
         self
     }
 
+    /// The fewest points an object may have (`[prepare] min_points`).
+    pub fn min_points(&self) -> usize {
+        self.settings.min_points
+    }
+
     pub fn prepare(&self, frame: &Frame) -> Result<Prepared, PrepareError> {
         self.prepare_measured(frame, &mut [0; STEPS.len()])
     }
@@ -173,17 +178,34 @@ impl Preparer {
         max_extent_m: f32,
         max_objects: usize,
     ) -> Result<Vec<Prepared>, PrepareError> {
+        self.prepare_all_measured(frame, max_extent_m, max_objects, &mut [0; STEPS.len()])
+    }
+
+    /// [`Preparer::prepare_all`], adding each step's CPU time to `cpu` as
+    /// [`Preparer::prepare_measured`] does. The decimated input cloud goes with the first.
+    pub fn prepare_all_measured(
+        &self,
+        frame: &Frame,
+        max_extent_m: f32,
+        max_objects: usize,
+        cpu: &mut [u64; STEPS.len()],
+    ) -> Result<Vec<Prepared>, PrepareError> {
         let s = &self.settings;
-        let (mut cpu, mut clock) = ([0; STEPS.len()], ThreadLap::start());
-        let (points, input, seed) = self.reduce(frame, &mut cpu, &mut clock)?;
+        let mut clock = ThreadLap::start();
+        let (points, mut input, seed) = self.reduce(frame, cpu, &mut clock)?;
         if !(s.cluster_m > 0.0) {
-            return Ok(vec![self.sample(&points, input, seed)?]);
+            let prepared = self.sample(&points, input, seed);
+            cpu[Step::Sample as usize] += clock.lap();
+            return Ok(vec![prepared?]);
         }
-        euclidean_clusters(&points, s.cluster_m, s.min_points, max_extent_m, max_objects)
+        let clusters = euclidean_clusters(&points, s.cluster_m, s.min_points, max_extent_m, max_objects);
+        cpu[Step::Cluster as usize] += clock.lap();
+        let prepared = clusters
             .into_iter()
-            .enumerate()
-            .map(|(k, cluster)| self.sample(&cluster, if k == 0 { input.clone() } else { None }, seed))
-            .collect()
+            .map(|cluster| self.sample(&cluster, input.take(), seed))
+            .collect();
+        cpu[Step::Sample as usize] += clock.lap();
+        prepared
     }
 
     /// The steps before clustering: the points left, the decimated input copy and the frame's

@@ -191,7 +191,7 @@ impl FoxgloveSink {
                 .name("publish:foxglove".into())
                 .spawn(move || {
                     for (state, shape) in states {
-                        if let Some(channels) = channels.get(&state.stream) {
+                        if let Some(channels) = channels.get(state.object_name().as_ref()) {
                             send(
                                 channels,
                                 &state,
@@ -215,20 +215,23 @@ impl FoxgloveSink {
         }
     }
 
+    /// Hands `state` to the view's thread, on its object's channels (its stream's, or with several
+    /// objects `/gdvae/<stream>/<track>/...`, declared when the track first shows).
     fn publish_state(&mut self, state: &State) -> Result<(), PublishError> {
-        if !self.channels.contains_key(&state.stream) {
-            self.declare(&[state.stream.clone()])?;
+        let object = state.object_name();
+        if !self.channels.contains_key(object.as_ref()) {
+            self.declare(&[object.to_string()])?;
         }
-        if !self.channels[&state.stream].watched() {
+        if !self.channels[object.as_ref()].watched() {
             return Ok(());
         }
         let now = std::time::Instant::now();
-        if let Some(last) = self.last_sent.get(&state.stream) {
+        if let Some(last) = self.last_sent.get(object.as_ref()) {
             if now.duration_since(*last) < self.min_interval {
                 return Ok(());
             }
         }
-        self.last_sent.insert(state.stream.clone(), now);
+        self.last_sent.insert(object.to_string(), now);
         let shape = self.shapes.as_ref().and_then(|s| s.shape_for(state));
         let queue = self
             .queue

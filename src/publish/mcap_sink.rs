@@ -1,6 +1,6 @@
 //! The MCAP sink (`[publish] mcap = FILE`, or `--record FILE` on `run` and `replay`): every
 //! published message on its stream's channel (`/gdvae/<stream>/state`, `/events`, `/rejected`),
-//! JSON-encoded under a JSON schema named after the message's schema (`gdvae.state/1`, ...), and
+//! JSON-encoded under a JSON schema named after the message's schema (`gdvae.state/2`, ...), and
 //! the view of each state (`view.rs`: `/transform`, `/input`, `/points`, `/shape`, `/scene`) in
 //! Foxglove's protobuf schemas, the same channels the live view sends; so that a run opens
 //! afterwards in Foxglove as it looked live, or in any MCAP reader, its fields ready to plot.
@@ -142,18 +142,19 @@ impl McapSink {
             &self.view.frame_id,
             self.metres_per_unit,
         );
-        let (stream, stamps) = (&state.stream, &state.stamps);
-        self.write_view(stream, "transform", stamps, &scene.transform);
-        for (kind, cloud) in [
-            ("input", &scene.input),
-            ("points", &scene.points),
-            ("shape", &scene.shape),
-        ] {
+        // The input cloud is the stream's; the rest its object's (with several objects,
+        // `/gdvae/<stream>/<track>/...`).
+        let (object, stamps) = (state.object_name(), &state.stamps);
+        if let Some(input) = &scene.input {
+            self.write_view(&state.stream, "input", stamps, input);
+        }
+        self.write_view(&object, "transform", stamps, &scene.transform);
+        for (kind, cloud) in [("points", &scene.points), ("shape", &scene.shape)] {
             if let Some(cloud) = cloud {
-                self.write_view(stream, kind, stamps, cloud);
+                self.write_view(&object, kind, stamps, cloud);
             }
         }
-        self.write_view(stream, "scene", stamps, &scene.scene);
+        self.write_view(&object, "scene", stamps, &scene.scene);
     }
 
     fn write_bytes(

@@ -9,7 +9,7 @@
 //! | `<ns>/<stream>/detections` | vision_msgs/msg/Detection3DArray | the object: id (identity), score, pose, box |
 //! | `/tf_static` | tf2_msgs/msg/TFMessage | gravity frame -> each stream's sensor frame (transient local) |
 //! | `<ns>/<stream>/z_e`, `.../z_i` | std_msgs/msg/Float32MultiArray | filtered pose code, fused shape code |
-//! | `<ns>/<stream>/state`, `.../events`, `.../rejected` | std_msgs/msg/String | the `gdvae.state/1` JSON, identity events, rejections |
+//! | `<ns>/<stream>/state`, `.../events`, `.../rejected` | std_msgs/msg/String | the `gdvae.state/2` JSON, identity events, rejections |
 //!
 //! Every publisher has its liveliness token (and the node its own), data go on the exact key a ROS 2
 //! subscriber of the type uses, each sample with rmw_zenoh's attachment; tokens are withdrawn when
@@ -97,6 +97,17 @@ struct StreamTopics {
     state: Topic,
     events: Topic,
     rejected: Topic,
+    /// With several objects: the detections of the frame being published, sent with its last
+    /// object (sequence, stamp, detections).
+    pending: Option<(u64, u64, Vec<OwnedDetection>)>,
+}
+
+/// A detection held until its frame's last object is published.
+struct OwnedDetection {
+    id: String,
+    score: f64,
+    pose: Pose,
+    size: [f64; 3],
 }
 
 pub struct Ros2Sink {
@@ -294,6 +305,7 @@ impl Ros2Sink {
                 state: self.declare(&state, &msg::STRING, qos)?,
                 events: self.declare(&events, &msg::STRING, qos)?,
                 rejected: self.declare(&rejected, &msg::STRING, qos)?,
+                pending: None,
             };
             log::info!(
                 "ROS 2: publishing {}/*",
@@ -316,7 +328,7 @@ impl Ros2Sink {
             position: state.centre_m.map(f64::from),
             orientation: [x, y, z, w],
         };
-        let child = format!("{}{}", self.settings.object_frame_prefix, state.stream);
+        let child = format!("{}{}", self.settings.object_frame_prefix, state.object_name());
         let metres_per_unit = self.metres_per_unit;
         if let Some(tf) = self.tf.as_mut() {
             tf.put(msg::tf_message(&[(header, &child, pose)]))?;
@@ -334,7 +346,26 @@ impl Ros2Sink {
             topics.events.put(msg::string(&json))?;
         }
         if let Some(detections) = topics.detections.as_mut() {
-            detections.put(detection_array(state, &header, &pose, metres_per_unit))?;
+            let detection = detection(state, &pose, metres_per_unit);
+            match state.of_frame {
+                None => detections.put(detection_array(&header, &[detection]))?,
+                Some((index, count)) => {
+                    // A frame's objects arrive one after another: one array of them all.
+                    let pending = topics.pending.get_or_insert((state.sequence, stamp_ns, Vec::new()));
+                    if pending.0 != state.sequence {
+                        // The rest of the previous frame's objects never came (a track failed).
+                        let (_, stamp_ns, earlier) = std::mem::replace(pending, (state.sequence, stamp_ns, Vec::new()));
+                        let header = Header { stamp_ns, frame_id: &frame_id };
+                        detections.put(detection_array(&header, &earlier))?;
+                    }
+                    pending.2.push(detection);
+                    if index + 1 == count {
+                        let (_, stamp_ns, all) = topics.pending.take().expect("held above");
+                        let header = Header { stamp_ns, frame_id: &frame_id };
+                        detections.put(detection_array(&header, &all))?;
+                    }
+                }
+            }
         }
         if let Some(markers) = topics.markers.as_mut() {
             markers.put(marker_array(state, &header, &pose, shape.as_deref().map(Vec::as_slice)))?;
@@ -343,10 +374,10 @@ impl Ros2Sink {
     }
 }
 
-/// The state's object as a `Detection3DArray` of one: id its identity, class "object" (the node
-/// does not classify), score its confidence, pose the estimated centre and rotation, box the
-/// extent of the points the encoder saw in the object's (canonical) frame.
-fn detection_array(state: &State, header: &Header, pose: &Pose, metres_per_unit: f32) -> Vec<u8> {
+/// The state's object as a detection: id its track (with several objects) or its identity, class
+/// "object" (the node does not classify), score its confidence, pose the estimated centre and
+/// rotation, box the extent of the points the encoder saw in the object's (canonical) frame.
+fn detection(state: &State, pose: &Pose, metres_per_unit: f32) -> OwnedDetection {
     let [w, x, y, z] = state.filtered.q;
     let to_object = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z)).inverse();
     let mut low = [f32::INFINITY; 3];
@@ -358,18 +389,27 @@ fn detection_array(state: &State, header: &Header, pose: &Pose, metres_per_unit:
             high[a] = high[a].max(local[a]);
         }
     }
-    let size = std::array::from_fn(|a| f64::from(((high[a] - low[a]) * metres_per_unit).max(0.0)));
-    let id = state.shape.identity.to_string();
-    msg::detection3d_array(
-        header,
-        &[msg::Detection {
-            id: &id,
+    OwnedDetection {
+        id: state.track.unwrap_or(state.shape.identity).to_string(),
+        score: f64::from(state.shape.confidence.clamp(0.0, 1.0)),
+        pose: *pose,
+        size: std::array::from_fn(|a| f64::from(((high[a] - low[a]) * metres_per_unit).max(0.0))),
+    }
+}
+
+/// One frame's detections as a `Detection3DArray`.
+fn detection_array(header: &Header, detections: &[OwnedDetection]) -> Vec<u8> {
+    let detections: Vec<msg::Detection> = detections
+        .iter()
+        .map(|d| msg::Detection {
+            id: &d.id,
             class_id: "object",
-            score: f64::from(state.shape.confidence.clamp(0.0, 1.0)),
-            pose: *pose,
-            size,
-        }],
-    )
+            score: d.score,
+            pose: d.pose,
+            size: d.size,
+        })
+        .collect();
+    msg::detection3d_array(header, &detections)
 }
 
 /// A sensor pose (rotation matrix, translation: sensor -> gravity) as the pose of the sensor's
@@ -388,7 +428,7 @@ fn marker_array(state: &State, header: &Header, pose: &Pose, shape: Option<&[[f3
     const LIFETIME_NS: u64 = 1_000_000_000;
     let text = format!(
         "{} identity {} ({:.0} %){}",
-        state.stream,
+        state.object_name(),
         state.shape.identity,
         100.0 * state.shape.confidence,
         if state.shape.inlier { "" } else { " outlier" }
@@ -403,11 +443,13 @@ fn marker_array(state: &State, header: &Header, pose: &Pose, shape: Option<&[[f3
         orientation: [0.0, 0.0, 0.0, 1.0],
     };
     let confidence = state.shape.confidence.clamp(0.0, 1.0);
+    // Each track's markers under ids of their own (0, 1, 2 with one object per stream).
+    let first_id = 3 * state.track.unwrap_or(0) as i32;
     let mut markers = vec![
         Marker {
             header: *header,
             namespace: "identity",
-            id: 0,
+            id: first_id,
             kind: msg::MARKER_TEXT,
             pose: above,
             scale: [0.0, 0.0, 0.12],
@@ -419,7 +461,7 @@ fn marker_array(state: &State, header: &Header, pose: &Pose, shape: Option<&[[f3
         Marker {
             header: *header,
             namespace: "heading",
-            id: 1,
+            id: first_id + 1,
             kind: msg::MARKER_ARROW,
             pose: heading,
             scale: [0.6, 0.05, 0.05],
@@ -433,7 +475,7 @@ fn marker_array(state: &State, header: &Header, pose: &Pose, shape: Option<&[[f3
         markers.push(Marker {
             header: *header,
             namespace: "shape",
-            id: 2,
+            id: first_id + 2,
             kind: msg::MARKER_POINTS,
             pose: *pose,
             scale: [0.02, 0.02, 0.0],

@@ -1,4 +1,4 @@
-//! The decoded canonical shape of each stream, for the sinks that draw it (ROS 2 markers, the
+//! The decoded canonical shape of each stream (each object, with several per stream), for the sinks that draw it (ROS 2 markers, the
 //! Foxglove view, the MCAP recording): the bundle's `decoder.onnx` on a thread of its own, asked at
 //! most `rate_hz` per stream and never waited for, so that decoding stays off the pipeline's hot
 //! path. A stream's first states go without a shape until the first decode is done (a few
@@ -16,7 +16,8 @@ use crate::state::State;
 pub type Shape = Arc<Vec<[f32; 3]>>;
 
 struct Request {
-    stream: String,
+    /// The state's object (`State::object_name`).
+    object: String,
     z_e: Vec<f32>,
     z_i: Vec<f32>,
 }
@@ -59,7 +60,7 @@ impl ShapeWorker {
                             Ok(points) => {
                                 let points: Vec<[f32; 3]> =
                                     points.iter().map(|p| p.map(|v| v * metres_per_unit)).collect();
-                                lock(&latest).shapes.insert(request.stream, Arc::new(points));
+                                lock(&latest).shapes.insert(request.object, Arc::new(points));
                             }
                             Err(e) => {
                                 failures += 1;
@@ -83,23 +84,24 @@ impl ShapeWorker {
     /// The latest shape of `state`'s stream (None before the first is decoded), asking for the
     /// state's own when one is due. Any number of sinks may call it for one state: it asks once.
     pub fn shape_for(&self, state: &State) -> Option<Shape> {
+        let object = state.object_name();
         let mut latest = lock(&self.latest);
         let due = latest
             .asked
-            .get(&state.stream)
+            .get(object.as_ref())
             .is_none_or(|t| t.elapsed().as_secs_f64() * self.rate_hz >= 1.0);
         if due {
             // Dropped when the decoder is still busy: the next state asks again.
             let request = Request {
-                stream: state.stream.clone(),
+                object: object.to_string(),
                 z_e: state.filtered.z_e.clone(),
                 z_i: state.shape.z_i.clone(),
             };
             if self.requests.try_send(request).is_ok() {
-                latest.asked.insert(state.stream.clone(), Instant::now());
+                latest.asked.insert(object.to_string(), Instant::now());
             }
         }
-        latest.shapes.get(&state.stream).cloned()
+        latest.shapes.get(object.as_ref()).cloned()
     }
 }
 

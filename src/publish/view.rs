@@ -120,7 +120,7 @@ pub fn scene(state: &State, shape: Option<&[[f32; 3]]>, frame_id: &str, metres_p
             }),
         )
     });
-    let object_frame = format!("gdvae/{}", state.stream);
+    let object_frame = format!("gdvae/{}", state.object_name());
     let half = 0.5 * state.filtered.yaw as f64;
     let transform = FrameTransform {
         timestamp,
@@ -168,7 +168,7 @@ fn label_and_arrow(state: &State, object_frame: String, timestamp: Option<Timest
         entities: vec![SceneEntity {
             timestamp,
             frame_id: object_frame,
-            id: state.stream.clone(),
+            id: state.object_name().into_owned(),
             frame_locked: true,
             arrows: vec![ArrowPrimitive {
                 pose: at(0.0, 0.0),
@@ -186,7 +186,7 @@ fn label_and_arrow(state: &State, object_frame: String, timestamp: Option<Timest
                 color: colour,
                 text: format!(
                     "{} identity {} ({}conf {:.2})",
-                    state.stream,
+                    state.object_name(),
                     state.shape.identity,
                     if state.shape.inlier { "" } else { "outlier, " },
                     state.shape.confidence

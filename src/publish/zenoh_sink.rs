@@ -1,5 +1,5 @@
 //! The zenoh sink: states, rejections and identity events as JSON or CBOR on the node's own keys,
-//! `<prefix>/<node>/<stream>/state`, `.../rejected`, `.../event` (schema `gdvae.state/1`). A zenoh
+//! `<prefix>/<node>/<stream>/state`, `.../rejected`, `.../event` (schema `gdvae.state/2`). A zenoh
 //! publisher is declared per key on first use.
 
 use std::collections::HashMap;

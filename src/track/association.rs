@@ -1,6 +1,6 @@
 //! Association: several objects in one stream's view, each with a track that persists while it is
-//! visible and gets its id back when it returns (issue 34; not yet wired into the pipeline, which
-//! still tracks the largest cluster of each frame).
+//! visible and gets its id back when it returns (`[track.objects]`; off by default, when the node
+//! tracks the largest cluster of each frame as one object).
 //!
 //! Frame by frame, candidates (one per cluster that could be an object: its centre in the gravity
 //! frame and its z_I) are matched to tracks at the least total cost, found exactly (Hungarian
@@ -17,10 +17,16 @@
 
 use serde::{Deserialize, Serialize};
 
-/// How candidates become tracks.
+/// `[track.objects]`: which clusters are candidates, and how candidates become tracks.
 #[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct AssociationSettings {
+    /// Track every object in view (each cluster within the limits below), not just the largest.
+    pub enabled: bool,
+    /// At most this many candidates a frame (the largest clusters).
+    pub max_objects: usize,
+    /// A cluster larger than this (m) on any side is not a candidate (a wall, a table, the floor).
+    pub max_extent_m: f32,
     /// Farthest a candidate may lie from a track's predicted position (m) at no elapsed time ...
     pub gate_m: f32,
     /// ... plus this speed times the time since the track was last seen (m/s).
@@ -42,6 +48,9 @@ pub struct AssociationSettings {
 impl Default for AssociationSettings {
     fn default() -> Self {
         Self {
+            enabled: false,
+            max_objects: 4,
+            max_extent_m: 2.5,
             gate_m: 0.4,
             max_speed_mps: 2.5,
             shape_weight: 1.0,
@@ -57,6 +66,7 @@ impl Default for AssociationSettings {
 impl AssociationSettings {
     pub fn validate(&self) -> Result<(), String> {
         let positive = [
+            ("max_extent_m", self.max_extent_m as f64),
             ("gate_m", self.gate_m as f64),
             ("shape_scale", self.shape_scale as f64),
             ("lost_s", self.lost_s),
@@ -76,6 +86,9 @@ impl AssociationSettings {
             if !(value >= 0.0 && value.is_finite()) {
                 return Err(format!("track.objects.{name} must be finite and >= 0, got {value}"));
             }
+        }
+        if self.max_objects == 0 {
+            return Err("track.objects.max_objects must be at least 1".into());
         }
         if self.birth_frames == 0 {
             return Err("track.objects.birth_frames must be at least 1".into());

@@ -6,13 +6,15 @@
 //!   and the direction of motion, with the front/back sense decided by accumulated evidence.
 //! - `pose`: one-euro smoothing of z_E and the rotation (and of the yaw, when `heading = "one-euro"`).
 //!
-//! - `association`: several objects in one stream, matched to tracks frame by frame (issue 34; not
-//!   yet wired into the pipeline).
+//! - `association`: several objects in one stream, matched to tracks frame by frame;
+//!   `objects`: those tracks, each with its own three filters (`[track.objects] enabled`).
 //!
-//! `StreamTracker` holds the three for one stream; the pipeline's track stage owns one per stream.
+//! `StreamTracker` holds the three for one object; the pipeline's track stage owns one per stream,
+//! or an `ObjectTracks` per stream when it tracks several objects.
 
 pub mod association;
 pub mod heading;
+pub mod objects;
 pub mod pose;
 mod settings;
 pub mod shape;
@@ -20,6 +22,7 @@ mod state;
 mod stream;
 
 pub use heading::{Heading, HeadingFilter};
+pub use objects::{ObjectTracks, TrackedCandidate};
 pub use pose::{confidence_from_log_variance, unwrap, yaw_of, OneEuro, Pose, PoseFilter};
 pub use settings::{ChangeDetector, HeadingMode, Smoothing, TrackSettings};
 pub use shape::{IdentityChange, ShapeFilter, ShapeUpdate};

@@ -84,6 +84,8 @@ pub struct TrackSettings {
     pub heading_wild_share: f32,
     /// Share of the other encoder yaws taken to read the back for the front.
     pub heading_back_share: f32,
+    /// Several objects per stream (`[track.objects]`).
+    pub objects: super::association::AssociationSettings,
 }
 
 impl Default for TrackSettings {
@@ -111,6 +113,7 @@ impl Default for TrackSettings {
             heading_encoder_vote: 0.5,
             heading_wild_share: 0.1,
             heading_back_share: 0.05,
+            objects: Default::default(),
         }
     }
 }
@@ -153,6 +156,6 @@ impl TrackSettings {
         if !(self.beta >= 0.0 && self.beta.is_finite()) {
             return Err(format!("track.beta = {} must be >= 0", self.beta));
         }
-        Ok(())
+        self.objects.validate()
     }
 }

@@ -47,6 +47,7 @@ impl StreamTracker {
             node: node.to_string(),
             stream: frame.stream.to_string(),
             sequence: frame.sequence,
+            track: None,
             stamps: state::Stamps {
                 sensor_ns: frame.sensor_stamp_ns,
                 ingest_ns: frame.ingest_unix_ns,
@@ -92,6 +93,7 @@ impl StreamTracker {
             prepared: None,
             input: None,
             sensor_frame: None,
+            of_frame: None,
         }
     }
 }

@@ -69,7 +69,7 @@ def test_a_rosbags_bag_replays_to_the_same_states_as_the_recording(tmp_path, ori
     written = write_bag(bag, storage)
     states, result = replay(bag, tmp_path, "bag")
     assert result.returncode == 0, result.stderr
-    assert written == sum(s["schema"] == "gdvae.state/1" for s in states) == 150
+    assert written == sum(s["schema"] == "gdvae.state/2" for s in states) == 150
     assert states == original, "the same states and identity events"
 
 
@@ -84,7 +84,7 @@ def test_a_cut_mcap_bag_replays_its_complete_prefix_and_counts_the_rest(tmp_path
     report = json.loads(result.stdout)
     counters = report["counters"]["streams"]["bag"]
     assert 0 < len(states) < len(original)
-    published = sum(s["schema"] == "gdvae.state/1" for s in states)
+    published = sum(s["schema"] == "gdvae.state/2" for s in states)
     assert counters["published"] == published
     assert counters["rejected"] == {"source": 1}, "the cut rest is one counted rejection"
     assert counters["received"] == published + 1

@@ -17,7 +17,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from node_paths import NODE, ROOT, free_port, sample_settings
 
-TOPICS = {"/gdvae/cam/state": "gdvae.state/1", "/gdvae/cam/transform": "foxglove.FrameTransform",
+TOPICS = {"/gdvae/cam/state": "gdvae.state/2", "/gdvae/cam/transform": "foxglove.FrameTransform",
           "/gdvae/cam/input": "foxglove.PointCloud", "/gdvae/cam/points": "foxglove.PointCloud",
           "/gdvae/cam/shape": "foxglove.PointCloud", "/gdvae/cam/scene": "foxglove.SceneUpdate"}
 
@@ -103,7 +103,7 @@ repeat = true
         assert channels[topic]["schemaName"] == schema
         assert channels[topic]["encoding"] == ("json" if topic.endswith("/state") else "protobuf")
     states = {s["stamps"]["sensor_ns"]: s for s in map(json.loads, jsonl.read_text().splitlines())
-              if s["schema"] == "gdvae.state/1"}
+              if s["schema"] == "gdvae.state/2"}
     # The live states are the published ones.
     for _, state in received["/gdvae/cam/state"]:
         assert state == states[state["stamps"]["sensor_ns"]]

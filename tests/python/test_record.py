@@ -41,7 +41,7 @@ def test_a_replay_recorded_to_mcap_holds_every_state_on_its_stream_channel(tmp_p
     channels = {c.topic: c for c in summary.channels.values()}
     view = {f"/gdvae/walk_switch/{kind}": schema for kind, schema in VIEW.items()}
     assert set(channels) == {"/gdvae/walk_switch/state", "/gdvae/walk_switch/events", *view}, set(channels)
-    for topic, schema in [("/gdvae/walk_switch/state", "gdvae.state/1"), ("/gdvae/walk_switch/events", "gdvae.event/1")]:
+    for topic, schema in [("/gdvae/walk_switch/state", "gdvae.state/2"), ("/gdvae/walk_switch/events", "gdvae.event/1")]:
         assert channels[topic].message_encoding == "json"
         assert summary.schemas[channels[topic].schema_id].name == schema
         assert summary.schemas[channels[topic].schema_id].encoding == "jsonschema"
@@ -53,7 +53,7 @@ def test_a_replay_recorded_to_mcap_holds_every_state_on_its_stream_channel(tmp_p
     recorded = [(channel.topic, decoders.get(channel.topic, json.loads)(message.data), message)
                 for _, channel, message in reader.iter_messages()]
     states = [m for t, m, _ in recorded if t.endswith("/state")]
-    assert states == [l for l in lines if l["schema"] == "gdvae.state/1"]
+    assert states == [l for l in lines if l["schema"] == "gdvae.state/2"]
     assert len(states) == 150
     events = [m for t, m, _ in recorded if t.endswith("/events")]
     assert [e["event"]["identity"] for e in events] == [1], "the sample's one subject change"
@@ -109,7 +109,7 @@ repeat = true
     except Exception as e:  # the chunk the kill cut short
         error = e
     decoded = [(m, json.loads(m.data)) for m in messages if topics[m.channel_id] == "/gdvae/cam/state"]
-    states = [(m, d) for m, d in decoded if d["schema"] == "gdvae.state/1"]
+    states = [(m, d) for m, d in decoded if d["schema"] == "gdvae.state/2"]
     # 30 frames a second for about 5 s, less start-up and at most the last second's chunk.
     assert len(states) >= 60, (len(states), error)
     assert [d["sequence"] for _, d in states] == list(range(len(states))), "every state up to the cut, in order"

@@ -397,7 +397,7 @@ key = "{DOMAIN}/lidar/points/sensor_msgs::msg::dds_::PointCloud2_/*"
             node.kill()
     assert node.returncode == 0, err.decode()
     cam = [l for l in lines if l["stream"] == "cam"]
-    states = [l for l in cam if l["schema"] == "gdvae.state/1"]
+    states = [l for l in cam if l["schema"] == "gdvae.state/2"]
     rejected = [l for l in cam if l["schema"] == "gdvae.rejected/1"]
     assert len(states) == len(clouds) + 1, (len(states), [r["reason"] for r in rejected])
     assert [s["stamps"]["sensor_ns"] for s in states[:-1]] == sorted(s["stamps"]["sensor_ns"] for s in states[:-1])
@@ -405,6 +405,6 @@ key = "{DOMAIN}/lidar/points/sensor_msgs::msg::dds_::PointCloud2_/*"
     assert len(reasons) == 2, reasons
     assert any("std_msgs::msg::dds_::String_" in r and "is not one the node reads" in r for r in reasons), reasons
     assert any("attachment" in r for r in reasons), reasons
-    assert [l["schema"] for l in lines if l["stream"] == "raw"] == ["gdvae.state/1"]
+    assert [l["schema"] for l in lines if l["stream"] == "raw"] == ["gdvae.state/2"]
     row = next(l for l in out.decode().splitlines() if l.strip().startswith("cam "))
     assert f"{len(clouds) + 3} received" in " ".join(row.split()), row

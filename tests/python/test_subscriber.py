@@ -44,7 +44,7 @@ repeat = true
     sequences = [s["sequence"] for s in states]
     assert sequences == sorted(sequences) and len(set(sequences)) == len(sequences)
     last = states[-1]
-    assert last["schema"] == "gdvae.state/1" and last["stream"] == "sample"
+    assert last["schema"] == "gdvae.state/2" and last["stream"] == "sample"
     assert len(last["shape"]["z_i"]) == 22 and len(last["filtered"]["z_e"]) == 10
     assert status["schema"] == "gdvae.status/1" and status["node"] == "py"
     assert status["counters"]["streams"]["sample"]["published"] >= 30
