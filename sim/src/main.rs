@@ -13,7 +13,7 @@ use gdvae_sim::dataset::{write_dataset, DatasetSpec};
 use gdvae_sim::distortion::measure_distortion;
 use gdvae_sim::family::{Family, PoseMode, Subject, DEFAULT_VERTEX_COUNT};
 use gdvae_sim::feed::{run_feed, zenoh_config, FeedOptions, DEFAULT_PREFIX};
-use gdvae_sim::motion::{MotionKind, MotionSpec};
+use gdvae_sim::motion::{planned_positions, MotionKind, MotionSpec};
 use gdvae_sim::ply::write_ply;
 use gdvae_sim::recording::{write_recording, RecordingOptions};
 use gdvae_sim::scenario::{Away, Scenario, ViewSpec};
@@ -116,17 +116,33 @@ struct ScenarioArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Other subjects in view, one per family given (e.g. `--others biped,quadruped`), each on its
-    /// own path on a stage shifted sideways (`--others-offset`), so that paths cross in the image.
+    /// own path on a stage shifted by its `--others-offset`, so that they pass behind each other
+    /// in the image.
     #[arg(long, value_delimiter = ',')]
     others: Vec<FamilyArg>,
-    /// Sideways shift (m) of the others' stages from the primary's: the first at +offset, the
-    /// second at -offset, the third at +2 x offset, ...
-    #[arg(long, default_value_t = 0.9)]
-    others_offset: f64,
+    /// Where each other subject's stage lies, `X:Y` (m, world; the camera looks along -x from
+    /// +x), one per other subject in order: by default the first 0.9 m to the primary's left, the
+    /// second 0.9 m to its right, so that the paths cross and the subjects pass behind each other.
+    #[arg(long, value_delimiter = ',', value_parser = parse_offset, default_value = "0:0.9,0:-0.9", allow_hyphen_values = true)]
+    others_offset: Vec<[f64; 2]>,
+    /// Least distance (m) between where two subjects stand, so that bodies never pass through
+    /// each other: each other subject's path (its phase) is drawn again until it keeps this
+    /// distance from the subjects before it at every frame (0: no check).
+    #[arg(long, default_value_t = 0.8)]
+    others_separation: f64,
     /// A subject out of the scene for an interval: `SUBJECT:FROM-TO` in seconds, SUBJECT 0 the
     /// primary and 1.. the others (e.g. `--away 1:3-6,1:9-10`).
     #[arg(long, value_delimiter = ',', value_parser = parse_away)]
     away: Vec<Away>,
+}
+
+/// How many seeds an other subject's path is drawn from before the scene is refused.
+const MAX_DRAWS: u64 = 200;
+
+fn parse_offset(text: &str) -> Result<[f64; 2], String> {
+    let bad = || format!("'{text}': expected X:Y in metres, e.g. -1.8:0");
+    let (x, y) = text.split_once(':').ok_or_else(bad)?;
+    Ok([x.trim().parse().map_err(|_| bad())?, y.trim().parse().map_err(|_| bad())?])
 }
 
 fn parse_away(text: &str) -> Result<Away, String> {
@@ -160,22 +176,53 @@ impl ScenarioArgs {
             decimation: self.decimation,
             ..ViewSpec::default()
         };
-        let others = self
-            .others
-            .iter()
-            .enumerate()
-            .map(|(k, family)| {
-                let side = if k % 2 == 0 { 1.0 } else { -1.0 };
-                let spec = MotionSpec {
+        if self.others.len() > self.others_offset.len() {
+            anyhow::bail!(
+                "--others names {} subjects but --others-offset places {}: give one X:Y per other subject",
+                self.others.len(),
+                self.others_offset.len()
+            );
+        }
+        // Each other subject's seed (its shape and its path's phase) drawn until its path keeps
+        // its distance from the subjects before it (while both are in the scene).
+        let fps = motion.fps;
+        let present = |id: usize, index: usize| {
+            let time = index as f64 / fps;
+            !self.away.iter().any(|a| a.subject == id && (a.from..a.to).contains(&time))
+        };
+        let mut placed: Vec<Vec<[f64; 2]>> = vec![planned_positions(&motion)];
+        let mut others = Vec::new();
+        for (k, (family, offset)) in self.others.iter().zip(&self.others_offset).enumerate() {
+            let id = k + 1;
+            let spec = (0..MAX_DRAWS)
+                .map(|draw| MotionSpec {
                     families: vec![Family::from(*family)],
                     switch_times: Vec::new(),
-                    seed: seeds::derive(self.seed, &[6, k as u64]),
+                    seed: seeds::derive(self.seed, &[6, k as u64, draw]),
                     ..motion.clone()
-                };
-                (spec, [0.0, side * (k / 2 + 1) as f64 * self.others_offset])
-            })
-            .collect();
-        Ok(Scenario::new(motion, view)?.with_others(others, self.away.clone())?)
+                })
+                .find(|spec| {
+                    let own = planned_positions(spec);
+                    own.iter().enumerate().all(|(index, p)| {
+                        let p = [p[0] + offset[0], p[1] + offset[1]];
+                        placed.iter().enumerate().all(|(other, positions)| {
+                            let q = positions[index];
+                            !(present(id, index) && present(other, index))
+                                || (p[0] - q[0]).hypot(p[1] - q[1]) >= self.others_separation
+                        })
+                    })
+                });
+            let Some(spec) = spec else {
+                anyhow::bail!(
+                    "subject {id}: no path in {MAX_DRAWS} draws keeps {} m from the subjects before \
+                     it on a stage offset {offset:?}: move its stage (--others-offset) or lower --others-separation",
+                    self.others_separation
+                );
+            };
+            placed.push(planned_positions(&spec).iter().map(|p| [p[0] + offset[0], p[1] + offset[1]]).collect());
+            others.push((spec, *offset));
+        }
+        Ok(Scenario::new(motion, view)?.with_others(others, self.away.clone(), self.others_separation)?)
     }
 }
 

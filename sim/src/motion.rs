@@ -175,6 +175,11 @@ impl Motion {
         self.spec.switch_times.iter().filter(|&&t| t <= time).count()
     }
 
+    /// Where the subject stands at frame `index` (m, world x, y; before any stage offset).
+    pub fn position_at(&self, index: usize) -> [f64; 2] {
+        self.path.at(index).position
+    }
+
     /// Ground truth and the posed, placed mesh of frame `index`.
     pub fn frame(&self, index: usize) -> Result<(FrameTruth, Mesh), SubjectError> {
         let time = index as f64 / self.spec.fps;
@@ -233,17 +238,42 @@ const IDLE_TURN_RATE: f64 = 0.35;
 /// moment while it hardly moves.
 pub const MAX_TURN_RATE: f64 = std::f64::consts::PI;
 
+/// The path's random phases (x, y) and starting yaw, from the spec's seed.
+fn path_phases(spec: &MotionSpec) -> (f64, f64, f64) {
+    let mut rng = seeds::rng(seeds::derive(spec.seed, &[3]));
+    let phase_x: f64 = rng.random_range(0.0..TAU);
+    let phase_y: f64 = rng.random_range(0.0..TAU);
+    let start_yaw: f64 = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+    (phase_x, phase_y, start_yaw)
+}
+
+/// Where a subject of `spec` stands at `t` (s): on a figure of eight whose lobes lie across the
+/// view (y), so its tightest turns (radius ay^2 / (8 ax), about 0.15 m for the default area) stay
+/// gentle enough to walk; idle, at one place.
+fn planned_position(spec: &MotionSpec, (phase_x, phase_y): (f64, f64), t: f64) -> [f64; 2] {
+    let omega = TAU / PATH_PERIOD;
+    let [ax, ay] = spec.area;
+    match spec.kind {
+        MotionKind::Walk => [ax * (2.0 * omega * t + phase_x).sin(), ay * (omega * t + phase_y).sin()],
+        MotionKind::Idle => [0.3 * ax * phase_x.cos(), 0.3 * ay * phase_y.cos()],
+    }
+}
+
+/// Where a subject of `spec` stands at each frame (m, world x, y), without building it: to place
+/// several subjects apart before their meshes are made.
+pub fn planned_positions(spec: &MotionSpec) -> Vec<[f64; 2]> {
+    let (phase_x, phase_y, _) = path_phases(spec);
+    (0..spec.frame_count())
+        .map(|index| planned_position(spec, (phase_x, phase_y), index as f64 / spec.fps))
+        .collect()
+}
+
 impl Path {
     fn new(spec: &MotionSpec, subjects: &[&Subject]) -> Self {
-        let mut rng = seeds::rng(seeds::derive(spec.seed, &[3]));
-        let phase_x: f64 = rng.random_range(0.0..TAU);
-        let phase_y: f64 = rng.random_range(0.0..TAU);
-        let start_yaw: f64 = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+        let (phase_x, phase_y, start_yaw) = path_phases(spec);
         let omega = TAU / PATH_PERIOD;
         let [ax, ay] = spec.area;
-        // A figure of eight whose lobes lie across the view (y), so its tightest turns (radius
-        // ay^2 / (8 ax), about 0.15 m for the default area) stay gentle enough to walk.
-        let position = |t: f64| [ax * (2.0 * omega * t + phase_x).sin(), ay * (omega * t + phase_y).sin()];
+        let position = |t: f64| planned_position(spec, (phase_x, phase_y), t);
         let velocity = |t: f64| {
             [
                 2.0 * ax * omega * (2.0 * omega * t + phase_x).cos(),
@@ -276,7 +306,7 @@ impl Path {
                     });
                 }
                 MotionKind::Idle => samples.push(PathSample {
-                    position: [0.3 * ax * phase_x.cos(), 0.3 * ay * phase_y.cos()],
+                    position: position(t),
                     yaw: start_yaw + IDLE_TURN_RATE * t,
                     gait_phase: 0.0,
                 }),

@@ -61,6 +61,17 @@ pub enum ScenarioError {
     Pose(usize, crate::family::SubjectError),
     #[error("away interval {0:?}: the subject must be one of the {1} (0: the primary) and from < to")]
     BadAway(Away, usize),
+    #[error(
+        "subjects {} and {} would stand {distance:.2} m apart at {time:.2} s (less than {separation} m: their \
+         bodies would pass through each other); place the others' stages farther (--others-offset)",
+        subjects.0, subjects.1
+    )]
+    TooClose {
+        subjects: (usize, usize),
+        distance: f64,
+        time: f64,
+        separation: f64,
+    },
 }
 
 /// The camera's pose in the world, as a ROS transform (translation m, rotation quaternion x y z w).
@@ -173,8 +184,15 @@ impl Scenario {
     }
 
     /// Adds other subjects (each its own motion script, lasting as long as the primary's, on a
-    /// stage shifted by its offset) and intervals in which subjects leave the view.
-    pub fn with_others(mut self, others: Vec<(MotionSpec, [f64; 2])>, away: Vec<Away>) -> Result<Self, ScenarioError> {
+    /// stage shifted by its offset) and intervals in which subjects leave the view. Refused when
+    /// two subjects would stand closer than `separation` (m) at any frame while both are in the
+    /// scene: bodies would pass through each other (0: no check).
+    pub fn with_others(
+        mut self,
+        others: Vec<(MotionSpec, [f64; 2])>,
+        away: Vec<Away>,
+        separation: f64,
+    ) -> Result<Self, ScenarioError> {
         for (spec, offset) in others {
             if !offset.iter().all(|v| v.is_finite()) {
                 return Err(ScenarioError::NotPositive("offset", offset[0]));
@@ -190,7 +208,48 @@ impl Scenario {
             }
         }
         self.away = away;
+        if separation > 0.0 {
+            self.check_separation(separation)?;
+        }
         Ok(self)
+    }
+
+    /// Where subject `id` (0: the primary) stands at frame `index` (m, world x, y).
+    fn position(&self, id: usize, index: usize) -> [f64; 2] {
+        match id {
+            0 => self.motion.position_at(index),
+            _ => {
+                let other = &self.others[id - 1];
+                let p = other.motion.position_at(index);
+                [p[0] + other.offset[0], p[1] + other.offset[1]]
+            }
+        }
+    }
+
+    fn check_separation(&self, separation: f64) -> Result<(), ScenarioError> {
+        let fps = self.motion.spec.fps;
+        let subjects = 1 + self.others.len();
+        for index in 0..self.frame_count() {
+            let time = index as f64 / fps;
+            for a in 0..subjects {
+                for b in a + 1..subjects {
+                    if !(self.present(a, time) && self.present(b, time)) {
+                        continue;
+                    }
+                    let (p, q) = (self.position(a, index), self.position(b, index));
+                    let distance = (p[0] - q[0]).hypot(p[1] - q[1]);
+                    if distance < separation {
+                        return Err(ScenarioError::TooClose {
+                            subjects: (a, b),
+                            distance,
+                            time,
+                            separation,
+                        });
+                    }
+                }
+            }
+        }
+        Ok(())
     }
 
     fn present(&self, subject: usize, time: f64) -> bool {

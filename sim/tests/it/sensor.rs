@@ -283,7 +283,7 @@ fn every_subject_of_a_crowded_scene_has_its_truth_its_visible_points_and_its_abs
     };
     let scenario = Scenario::new(spec.clone(), view.clone())
         .unwrap()
-        .with_others(vec![(other, [0.0, 0.9])], vec![away])
+        .with_others(vec![(other, [-1.8, 0.0])], vec![away], 1.0)
         .unwrap();
     let alone = Scenario::new(spec, view).unwrap();
     for index in [0, 20, 40] {
@@ -294,7 +294,7 @@ fn every_subject_of_a_crowded_scene_has_its_truth_its_visible_points_and_its_abs
         assert_eq!((primary.id, biped.id), (0, 1));
         assert_eq!(primary.truth, frame.truth, "the primary's truth is the flattened one");
         assert_eq!(biped.truth.family, Family::Biped);
-        assert!((biped.truth.translation[1] - 0.9).abs() < 2.0, "on its shifted stage");
+        assert!((biped.truth.translation[0] + 1.8).abs() < 0.5, "on its shifted stage");
         let gone = (0.5..1.0).contains(&frame.truth.time);
         assert_eq!(biped.present, !gone, "frame {index}");
         if gone {
@@ -318,5 +318,31 @@ fn every_subject_of_a_crowded_scene_has_its_truth_its_visible_points_and_its_abs
         to: 1.0,
     };
     let one = Scenario::new(walk_spec(vec![]), ViewSpec::default()).unwrap();
-    assert!(one.with_others(vec![], vec![bad]).is_err(), "no subject 2");
+    assert!(one.with_others(vec![], vec![bad], 1.0).is_err(), "no subject 2");
+}
+
+/// Two walkers on overlapping stages would walk through each other: refused, with the subjects
+/// and the distance named; on stages far enough apart they are accepted.
+#[test]
+fn subjects_that_would_pass_through_each_other_are_refused() {
+    let mut spec = walk_spec(vec![]);
+    spec.duration = 12.0;
+    spec.fps = 5.0;
+    let other = MotionSpec {
+        families: vec![Family::Quadruped],
+        seed: 7,
+        ..spec.clone()
+    };
+    let scene = |offset: [f64; 2], separation: f64| {
+        Scenario::new(spec.clone(), ViewSpec::default())
+            .unwrap()
+            .with_others(vec![(other.clone(), offset)], vec![], separation)
+    };
+    let Err(error) = scene([0.0, 0.9], 1.0) else {
+        panic!("overlapping stages accepted")
+    };
+    let message = error.to_string();
+    assert!(message.contains("subjects 0 and 1") && message.contains("--others-offset"), "{message}");
+    assert!(scene([0.0, 0.9], 0.0).is_ok(), "no check asked for");
+    assert!(scene([-1.8, 0.0], 1.0).is_ok(), "1.8 m behind: never closer than 1 m");
 }
