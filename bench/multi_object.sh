@@ -3,8 +3,8 @@
 # overlap in the image, one of them leaving the view and coming back, from fixed seeds. Three sets
 # of the same six scenarios with different seeds: `tune` (settings are chosen on it), `holdout`
 # and `final` (measured, nothing chosen on them). Then the candidate detection measured on the set
-# (bench/detection.rs); the tracking figures (MOTA, IDF1, ...) follow once the pipeline tracks
-# several objects.
+# (bench/detection.rs), and the tracking: `gdvae-node evaluate` with config/objects.toml (MOTA,
+# IDF1, ID switches, returns that got their id back, per-track heading).
 #
 #   bench/multi_object.sh SET [OUT_DIR]
 #
@@ -44,3 +44,5 @@ for scenario in "${SCENARIOS[@]}"; do
   index=$((index + 1))
 done
 cargo run --release --quiet --example detection -- "$OUT/$SET"/*.mcap
+echo "command: ./target/release/gdvae-node evaluate $OUT/$SET/*.mcap --config config/objects.toml"
+./target/release/gdvae-node evaluate "$OUT/$SET"/*.mcap --config config/objects.toml

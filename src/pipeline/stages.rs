@@ -381,6 +381,7 @@ fn several_objects(objects: &mut ObjectTracks, frame: EncodedFrame, node: &str, 
         .map(|(prepared, encoding)| Candidate {
             centre: prepared.centre_m,
             z_i: encoding.z_i_mean.clone(),
+            points: prepared.points_kept,
         })
         .collect();
     let time = seconds(origin.sensor_stamp_ns, origin.ingest_unix_ns);

@@ -43,6 +43,10 @@ pub struct AssociationSettings {
     pub memory_s: f64,
     /// Largest z_I distance between a new track and an ended one for it to take the old id.
     pub reid_distance: f32,
+    /// A candidate within the gates of two confirmed tracks and with at least this many times the
+    /// points either usually has is the two merged into one cluster (walking side by side, one
+    /// behind the other): neither takes it, both coast on their motion until they part (0: off).
+    pub merge_ratio: f32,
 }
 
 impl Default for AssociationSettings {
@@ -59,6 +63,7 @@ impl Default for AssociationSettings {
             lost_s: 1.0,
             memory_s: 10.0,
             reid_distance: 1.0,
+            merge_ratio: 0.0,
         }
     }
 }
@@ -81,6 +86,7 @@ impl AssociationSettings {
             ("shape_weight", self.shape_weight as f64),
             ("memory_s", self.memory_s),
             ("reid_distance", self.reid_distance as f64),
+            ("merge_ratio", self.merge_ratio as f64),
         ];
         for (name, value) in non_negative {
             if !(value >= 0.0 && value.is_finite()) {
@@ -103,6 +109,8 @@ pub struct Candidate {
     /// Centre in the gravity frame (m).
     pub centre: [f32; 3],
     pub z_i: Vec<f32>,
+    /// Its points (after filtering; 0: unknown, never taken for a merge).
+    pub points: usize,
 }
 
 /// What happened to a track in a frame.
@@ -137,6 +145,8 @@ struct Track {
     hits: usize,
     z_i_sum: Vec<f32>,
     z_i_count: usize,
+    /// Running mean of its candidates' points.
+    points_mean: f32,
 }
 
 impl Track {
@@ -193,6 +203,7 @@ impl Associator {
     /// Associates one frame's candidates at `time` (s, increasing).
     pub fn update(&mut self, time: f64, candidates: &[Candidate]) -> Associated {
         let s = &self.settings;
+        let merged = self.merged(time, candidates);
         let cost: Vec<Vec<f64>> = self
             .tracks
             .iter()
@@ -202,9 +213,10 @@ impl Associator {
                 let fused = (track.z_i_count > 0).then(|| track.fused());
                 candidates
                     .iter()
-                    .map(|c| {
+                    .enumerate()
+                    .map(|(k, c)| {
                         let d = distance(&predicted, &c.centre);
-                        if d > gate {
+                        if d > gate || merged[k] {
                             return NO_MATCH;
                         }
                         let shape = fused
@@ -246,6 +258,11 @@ impl Associator {
             }
             track.z_i_sum.iter_mut().zip(&candidate.z_i).for_each(|(s, v)| *s += v);
             track.z_i_count += 1;
+            track.points_mean = if track.points_mean > 0.0 {
+                0.8 * track.points_mean + 0.2 * candidate.points as f32
+            } else {
+                candidate.points as f32
+            };
         }
         // Tentative tracks need frames in a row: one missed, they go.
         let mut index = 0;
@@ -288,7 +305,7 @@ impl Associator {
         self.gallery.retain(|e| time - e.last_seen <= memory_s);
         // New tentative tracks for what no track took.
         for (c, candidate) in candidates.iter().enumerate() {
-            if key_of[c].is_none() {
+            if key_of[c].is_none() && !merged[c] {
                 let key = self.next_key;
                 self.next_key += 1;
                 key_of[c] = Some(key);
@@ -301,6 +318,7 @@ impl Associator {
                     hits: 1,
                     z_i_sum: candidate.z_i.clone(),
                     z_i_count: 1,
+                    points_mean: candidate.points as f32,
                 });
                 if self.settings.birth_frames <= 1 {
                     let event = self.confirm(key, time);
@@ -312,6 +330,33 @@ impl Associator {
             *id = self.tracks.iter().find(|t| Some(t.key) == *key).and_then(|t| t.id);
         }
         result
+    }
+
+    /// Per candidate, whether it is two confirmed tracks' objects merged into one cluster: within
+    /// both their gates, with `merge_ratio` times the points either has had.
+    fn merged(&self, time: f64, candidates: &[Candidate]) -> Vec<bool> {
+        let s = &self.settings;
+        candidates
+            .iter()
+            .map(|c| {
+                if s.merge_ratio <= 0.0 || c.points == 0 {
+                    return false;
+                }
+                let near: Vec<&Track> = self
+                    .tracks
+                    .iter()
+                    .filter(|t| t.id.is_some() && t.points_mean > 0.0)
+                    .filter(|t| {
+                        let gate = s.gate_m as f64 + s.max_speed_mps as f64 * (time - t.last_seen).max(0.0);
+                        distance(&t.predicted(time), &c.centre) <= gate
+                    })
+                    .collect();
+                near.len() >= 2
+                    && near
+                        .iter()
+                        .all(|t| c.points as f32 >= s.merge_ratio * t.points_mean)
+            })
+            .collect()
     }
 
     /// Gives the track of `key` an id: an ended or unseen track's whose fused z_I is nearest

@@ -18,6 +18,7 @@ fn candidate(x: f32, y: f32, which: usize) -> Candidate {
     Candidate {
         centre: [x, y, 0.4],
         z_i: z_i(which),
+        points: 0,
     }
 }
 
@@ -131,6 +132,7 @@ fn an_object_that_leaves_and_returns_gets_its_id_back_and_a_stranger_does_not() 
             c.push(Candidate {
                 centre: [2.0, 2.0, 0.4],
                 z_i: vec![-3.0; 8],
+                points: 0,
             });
         }
         c
@@ -159,4 +161,85 @@ fn settings_are_checked_by_name() {
         ..Default::default()
     };
     assert!(bad.validate().unwrap_err().contains("gate_m"));
+}
+
+/// `ObjectTracks`: each confirmed track has filters of its own, fed only by its own candidates,
+/// and a track that returns within the memory window goes on from the filters it had.
+#[test]
+fn each_track_keeps_its_own_filters_and_gets_them_back_when_it_returns() {
+    use gdvae_node::track::{ObjectTracks, TrackSettings};
+    let settings = TrackSettings::default();
+    let mut tracks = ObjectTracks::new(&settings);
+    let log_variance = vec![-4.0f32; 8];
+    let mut fused: std::collections::HashMap<u64, u64> = std::collections::HashMap::new();
+    let mut ids_seen = Vec::new();
+    // 2 s of two objects apart; object 1 gone from 2 s to 4 s (past lost_s = 1 s); back until 5 s.
+    for f in 0..150usize {
+        let t = f as f64 / FPS;
+        let mut scene = vec![candidate(-1.0, 0.0, 0)];
+        if !(2.0..4.0).contains(&t) {
+            scene.push(candidate(1.0, 0.0, 1));
+        }
+        let (tracked, _) = tracks.associate(t, &scene);
+        for c in &tracked {
+            let z = &scene[c.candidate].z_i;
+            let filters = tracks.filters(c.id);
+            filters.update((z, &log_variance), [1.0, 0.0, 0.0, 0.0], &[0.0; 4], scene[c.candidate].centre, c.dt);
+            assert!(c.dt > 0.0 && c.dt <= 1.0, "a frame's dt: {}", c.dt);
+            // A track's fused z_I is its own object's: the two never mix.
+            let mean = filters.shape.mean();
+            assert!((mean[0] - z[0]).abs() < 1e-3, "track {} fused {mean:?} for {z:?}", c.id);
+            *fused.entry(c.id).or_default() = filters.shape.frames_fused();
+            if !ids_seen.contains(&c.id) {
+                ids_seen.push(c.id);
+            }
+        }
+    }
+    assert_eq!(ids_seen.len(), 2, "two objects, two ids (the returning one got its own back)");
+    // Object 0 in every frame but its birth's; object 1 in 2 s + 1 s of frames, less a birth each
+    // time: 84 frames fused if its filters came back with its id, 27 had it started afresh.
+    let mut counts: Vec<u64> = fused.values().copied().collect();
+    counts.sort_unstable();
+    assert!(counts[1] >= 145, "{fused:?}");
+    assert!(counts[0] >= 80, "the returning track's filters went on from where they were: {fused:?}");
+}
+
+/// Two objects of one kind walk side by side, merge into one cluster (twice the points) for half a
+/// second and part: neither track takes the merged cluster (both coast), and each gets its own
+/// object back after, not the other's; with the merge check off, one track takes the merged
+/// cluster and follows it to the wrong side.
+#[test]
+fn two_tracks_coast_through_a_merge_and_keep_their_objects() {
+    let run_with = |merge_ratio: f32| {
+        let mut associator = Associator::new(AssociationSettings {
+            merge_ratio,
+            ..AssociationSettings::default()
+        });
+        // Both move along +x at 1 m/s, 0.9 m apart in y; from 1 s to 1.5 s one merged cluster at
+        // their middle, with the points of both.
+        let frames = run(&mut associator, 90, |f| {
+            let t = f as f64 / FPS;
+            let x = t as f32;
+            let same_shape = |y: f32, points: usize| Candidate {
+                centre: [x, y, 0.4],
+                z_i: z_i(0),
+                points,
+            };
+            if (1.0..1.5).contains(&t) {
+                vec![same_shape(0.45, 1000)]
+            } else {
+                vec![same_shape(0.0, 500), same_shape(0.9, 520)]
+            }
+        });
+        let before = &frames[29].ids;
+        let after = &frames[89].ids;
+        let merged_ids: Vec<Option<u64>> = frames[30..45].iter().flat_map(|f| f.ids.clone()).collect();
+        (before.clone(), after.clone(), merged_ids)
+    };
+    let (before, after, merged) = run_with(1.4);
+    assert!(before[0].is_some() && before[1].is_some());
+    assert_eq!(before, after, "each object has its own track again after the merge");
+    assert!(merged.iter().all(Option::is_none), "nobody takes the merged cluster: {merged:?}");
+    let (_, _, merged_off) = run_with(0.0);
+    assert!(merged_off.iter().any(Option::is_some), "without the check a track takes it");
 }

@@ -376,3 +376,55 @@ fn multi_object_counts_match_a_sequence_counted_by_hand() {
     let c = mot_counts(&perfect, 0.5);
     assert_eq!((c.mota, c.idf1, c.id_switches, c.fragmentations), (1.0, 1.0, 0, 0));
 }
+
+/// The committed two-subject sample (a quadruped and a biped; the biped leaves for 1.5 s) through
+/// `evaluate` with several objects: every state names a track, at most one per subject a frame,
+/// the two subjects keep their ids and the biped gets its own back; without `[track.objects]`
+/// the same recording gives one state per frame, naming none.
+#[test]
+fn evaluate_tracks_both_subjects_of_the_two_subject_sample() {
+    let dir = tempfile::tempdir().unwrap();
+    let sample = repo().join("sim/samples/two_subjects.mcap");
+    let evaluate = |set: &str, states: &Path| {
+        let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
+            .current_dir(repo())
+            .args(["evaluate", "--config", "config/objects.toml", "--out", "-", "--set", set, "--states"])
+            .arg(states)
+            .arg(&sample)
+            .output()
+            .unwrap();
+        assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+        let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+        let lines: Vec<serde_json::Value> = std::fs::read_to_string(states)
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
+        (report, lines)
+    };
+    let (report, lines) = evaluate("objects.enabled=true", &dir.path().join("several.jsonl"));
+    let objects = &report["recordings"][0]["objects"];
+    assert_eq!(objects["mot"]["frames"], 60, "{objects}");
+    assert_eq!(objects["tracks"], 2, "one track per subject: {objects}");
+    assert_eq!(objects["mot"]["id_switches"], 0, "{objects}");
+    assert_eq!(objects["mot"]["false_positives"], 0, "{objects}");
+    assert!(objects["mot"]["idf1"].as_f64().unwrap() > 0.9, "{objects}");
+    assert_eq!(
+        (objects["returns"]["other_family"].as_u64(), objects["returns"]["other_family_same_id"].as_u64()),
+        (Some(1), Some(1)),
+        "the biped came back and got its id back: {objects}"
+    );
+    assert!(report["overall"]["objects"]["mot"]["idf1"].as_f64().is_some());
+    let mut per_frame: std::collections::BTreeMap<u64, Vec<u64>> = Default::default();
+    for line in &lines {
+        let state = &line["state"];
+        assert_eq!(state["schema"], "gdvae.state/2");
+        let track = state["track"].as_u64().expect("every state names its track");
+        per_frame.entry(state["sequence"].as_u64().unwrap()).or_default().push(track);
+    }
+    assert!(per_frame.values().all(|t| t.len() <= 2 && (t.len() < 2 || t[0] != t[1])), "{per_frame:?}");
+    assert!(per_frame.values().filter(|t| t.len() == 2).count() >= 30, "both tracked most of the time");
+    let (single, lines) = evaluate("objects.enabled=false", &dir.path().join("one.jsonl"));
+    assert!(single["recordings"][0]["objects"].is_null());
+    assert!(lines.len() <= 60 && lines.iter().all(|l| l["state"]["track"].is_null()));
+}

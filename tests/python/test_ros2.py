@@ -408,3 +408,89 @@ key = "{DOMAIN}/lidar/points/sensor_msgs::msg::dds_::PointCloud2_/*"
     assert [l["schema"] for l in lines if l["stream"] == "raw"] == ["gdvae.state/2"]
     row = next(l for l in out.decode().splitlines() if l.strip().startswith("cam "))
     assert f"{len(clouds) + 3} received" in " ".join(row.split()), row
+
+
+def test_several_objects_give_one_detection_array_per_frame_and_a_frame_per_track(tmp_path):
+    """With `[track.objects] enabled` (config/objects.toml's settings) on the two-subject sample,
+    replayed at its own pace: each frame's Detection3DArray holds one detection per tracked
+    object, id = its track, at that state's centre; /tf names one child frame per track; the
+    markers of each track carry ids of their own."""
+    objects = (ROOT / "config/objects.toml").read_text()
+    settings = objects[objects.index("[prepare]"):objects.index("[publish]")]
+    source = objects[objects.index("[[source]]"):].replace(
+        '"../sim/samples/two_subjects.mcap"', f'"{ROOT / "sim/samples/two_subjects.mcap"}"'
+    ).replace("speed = 0.0", "speed = 1.0")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = tmp_path / "objects.toml"
+    config.write_text(f"""
+[node]
+name = "ros"
+[model]
+bundle = "{ROOT / 'models/bundles/cpu-fo'}"
+threads = 1
+[pipeline]
+summary_seconds = 0.0
+{settings}
+[publish]
+zenoh = false
+[publish.ros2]
+enabled = true
+domain_id = {DOMAIN}
+namespace = "{NAMESPACE}"
+frame_id = "world"
+shape_rate_hz = 0.0
+[zenoh]
+listen = ["{endpoint}"]
+multicast_scouting = false
+{source}
+""")
+    topics = {f"{NAMESPACE}/two/detections": "vision_msgs/msg/Detection3DArray",
+              f"{NAMESPACE}/two/state": "std_msgs/msg/String",
+              f"{NAMESPACE}/two/markers": "visualization_msgs/msg/MarkerArray",
+              "/tf": "tf2_msgs/msg/TFMessage"}
+    samples = {topic: [] for topic in topics}
+    node = subprocess.Popen([NODE, "-q", "run", "--config", str(config)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        with client(endpoint) as session:
+            subscribers = [session.declare_subscriber(ros_key(topic, msgtype),
+                                                      lambda s, t=topic: samples[t].append(s))
+                           for topic, msgtype in topics.items()]
+            out, err = node.communicate(timeout=60)
+            assert node.returncode == 0, err.decode()
+            time.sleep(0.5)
+            for s in subscribers:
+                s.undeclare()
+    finally:
+        if node.poll() is None:
+            node.kill()
+    decoded = {topic: [STORE.deserialize_cdr(s.payload.to_bytes(), msgtype) for s in samples[topic]]
+               for topic, msgtype in topics.items()}
+    for topic, msgtype in topics.items():
+        for sample, message in zip(samples[topic], decoded[topic]):
+            assert bytes(STORE.serialize_cdr(message, msgtype)) == sample.payload.to_bytes(), topic
+    states = {}
+    for message in decoded[f"{NAMESPACE}/two/state"]:
+        state = json.loads(message.data)
+        assert state["schema"] == "gdvae.state/2" and isinstance(state["track"], int)
+        states.setdefault(state["stamps"]["sensor_ns"], {})[state["track"]] = state
+    arrays = decoded[f"{NAMESPACE}/two/detections"]
+    assert len(arrays) >= 20, len(arrays)
+    both = 0
+    for array in arrays:
+        stamp = array.header.stamp.sec * 1_000_000_000 + array.header.stamp.nanosec
+        tracks = states[stamp]
+        assert sorted(d.id for d in array.detections) == sorted(str(t) for t in tracks), "one per track"
+        for d in array.detections:
+            centre = d.bbox.center.position
+            expected = tracks[int(d.id)]["centre_m"]
+            assert all(abs(a - b) < 1e-5 for a, b in zip([centre.x, centre.y, centre.z], expected))
+        both += len(array.detections) == 2
+    assert both >= 20, f"{both} frames with both subjects"
+    track_ids = {t for tracks in states.values() for t in tracks}
+    assert len(track_ids) == 2, track_ids
+    children = {t.child_frame_id for m in decoded["/tf"] for t in m.transforms}
+    assert children == {f"two/{t}" for t in track_ids}, children
+    marker_ids = {(m.ns, m.id) for array in decoded[f"{NAMESPACE}/two/markers"] for m in array.markers}
+    assert marker_ids == {(ns, 3 * t + k) for t in track_ids for k, ns in [(0, "identity"), (1, "heading")]}, \
+        marker_ids
