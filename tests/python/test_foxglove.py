@@ -40,11 +40,11 @@ def xyz_of(cloud):
     return [xyz[i:i + 3] for i in range(0, len(xyz), 3)]
 
 
-async def watch(port, wanted):
-    """Connects, subscribes to TOPICS, and collects `wanted` messages of each."""
+async def watch(port, wanted, topics=TOPICS):
+    """Connects, subscribes to `topics`, and collects `wanted` messages of each."""
     async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"],
                                   max_size=None) as ws:
-        channels, received = {}, {topic: [] for topic in TOPICS}
+        channels, received = {}, {topic: [] for topic in topics}
         subscribed = {}
         while min(len(v) for v in received.values()) < wanted:
             message = await asyncio.wait_for(ws.recv(), timeout=30)
@@ -52,7 +52,7 @@ async def watch(port, wanted):
                 op = json.loads(message)
                 if op["op"] == "advertise":
                     channels.update({c["topic"]: c for c in op["channels"]})
-                    todo = [t for t in TOPICS if t in channels and t not in subscribed.values()]
+                    todo = [t for t in topics if t in channels and t not in subscribed.values()]
                     if todo:
                         subscriptions = [{"id": len(subscribed) + i, "channelId": channels[t]["id"]}
                                          for i, t in enumerate(todo)]
@@ -152,3 +152,60 @@ repeat = true
         stamp = entity.timestamp.seconds * 1_000_000_000 + entity.timestamp.nanos
         assert entity.frame_id == "gdvae/cam" and len(entity.arrows) == 1
         assert f"identity {states[stamp]['shape']['identity']} " in entity.texts[0].text
+
+
+def test_with_several_objects_each_track_has_its_own_channels_and_frame(tmp_path):
+    """`[track.objects] enabled` on the two-subject sample: each track's view on channels of its own
+    (`/gdvae/<stream>/<track>/...`, advertised when the track appears), its own object frame and
+    scene entity, at its state's centre."""
+    objects = (ROOT / "config/objects.toml").read_text()
+    settings = objects[objects.index("[prepare]"):objects.index("[publish]")]
+    source = objects[objects.index("[[source]]"):].replace(
+        '"../sim/samples/two_subjects.mcap"', f'"{ROOT / "sim/samples/two_subjects.mcap"}"'
+    ).replace("speed = 0.0", "speed = 1.0")
+    port, jsonl = free_port(), tmp_path / "states.jsonl"
+    config = tmp_path / "node.toml"
+    config.write_text(f"""[model]
+bundle = "{ROOT / 'models/bundles/cpu-fo'}"
+threads = 1
+[pipeline]
+summary_seconds = 0.0
+{settings}
+[publish]
+zenoh = false
+jsonl = "{jsonl}"
+[publish.foxglove]
+enabled = true
+port = {port}
+{source}
+""")
+    topics = [f"/gdvae/two/{track}/{what}" for track in (1, 2) for what in ("transform", "scene", "points")]
+    node = subprocess.Popen([NODE, "-q", "run", "--config", str(config)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                channels, received = asyncio.run(watch(port, 8, topics))
+                break
+            except OSError:
+                assert time.monotonic() < deadline and node.poll() is None, node.stderr.read().decode()
+                time.sleep(0.2)
+        _, err = node.communicate(timeout=60)
+        assert node.returncode == 0, err.decode()
+    finally:
+        if node.poll() is None:
+            node.kill()
+    states = {(s["stamps"]["sensor_ns"], s["track"]): s for s in map(json.loads, jsonl.read_text().splitlines())
+              if s["schema"] == "gdvae.state/2"}
+    for track in (1, 2):
+        for _, transform in received[f"/gdvae/two/{track}/transform"]:
+            stamp = transform.timestamp.seconds * 1_000_000_000 + transform.timestamp.nanos
+            state = states[(stamp, track)]
+            assert (transform.parent_frame_id, transform.child_frame_id) == ("gravity", f"gdvae/two/{track}")
+            centre = [transform.translation.x, transform.translation.y, transform.translation.z]
+            assert all(abs(a - b) < 1e-5 for a, b in zip(centre, state["centre_m"]))
+        for _, scene in received[f"/gdvae/two/{track}/scene"]:
+            (entity,) = scene.entities
+            assert entity.id == f"two/{track}" and entity.frame_id == f"gdvae/two/{track}"
+        assert channels[f"/gdvae/two/{track}/points"]["schemaName"] == "foxglove.PointCloud"
