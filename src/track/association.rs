@@ -43,9 +43,10 @@ pub struct AssociationSettings {
     pub memory_s: f64,
     /// Largest z_I distance between a new track and an ended one for it to take the old id.
     pub reid_distance: f32,
-    /// A candidate within the gates of two confirmed tracks and with at least this many times the
-    /// points either usually has is the two merged into one cluster (walking side by side, one
-    /// behind the other): neither takes it, both coast on their motion until they part (0: off).
+    /// A candidate near two confirmed tracks (within a gate more than either's: a merged cluster's
+    /// centre lies between its objects) and with at least this many times the points either
+    /// usually has is the two merged into one cluster (walking side by side, one behind the
+    /// other): neither takes it, both coast on their motion until they part (0: off).
     pub merge_ratio: f32,
 }
 
@@ -63,7 +64,7 @@ impl Default for AssociationSettings {
             lost_s: 1.0,
             memory_s: 10.0,
             reid_distance: 1.0,
-            merge_ratio: 0.0,
+            merge_ratio: 1.4,
         }
     }
 }
@@ -348,7 +349,9 @@ impl Associator {
                     .filter(|t| t.id.is_some() && t.points_mean > 0.0)
                     .filter(|t| {
                         let gate = s.gate_m as f64 + s.max_speed_mps as f64 * (time - t.last_seen).max(0.0);
-                        distance(&t.predicted(time), &c.centre) <= gate
+                        // A merged cluster's centre lies between its objects: half their spacing
+                        // from each, beyond one gate.
+                        distance(&t.predicted(time), &c.centre) <= gate + s.gate_m as f64
                     })
                     .collect();
                 near.len() >= 2
