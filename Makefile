@@ -37,12 +37,14 @@ bench-tracking: onnxruntime node sim
 	bench/tracking.sh holdout
 	bench/tracking.sh final
 
-# The multi-object benchmark's recordings and, so far, its candidate detection (docs/tracking.md
-# "Several objects"), on `tune` and `holdout`; `final` is measured once, by hand
-# (bench/multi_object.sh final). Recordings in /work/data/bench-multi, or $BENCH_DIR.
+# The multi-object benchmark (docs/tracking.md "Several objects"): its recordings, the candidate
+# detection and the tracking (evaluate with config/objects.toml) on `tune`, `holdout`, `final` and
+# the re-identification set `returns`. Recordings in /work/data/bench-multi, or $BENCH_DIR.
 bench-multi: sim
 	bench/multi_object.sh tune
 	bench/multi_object.sh holdout
+	bench/multi_object.sh final
+	bench/multi_object.sh returns
 
 # The paper-structured evaluation set (models/README.md "Evaluation split"): 300 subjects per
 # family, one pose each, all in the test split, from a seed no training set uses.
