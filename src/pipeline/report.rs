@@ -169,6 +169,12 @@ pub fn print_report(
                 String::new()
             }
         );
+        if c.tracks_born + c.frames_untracked > 0 {
+            println!(
+                "  {:<16} tracks: {} born, {} re-identified, {} ended; {} frame(s) with no confirmed track",
+                "", c.tracks_born, c.tracks_reidentified, c.tracks_ended, c.frames_untracked
+            );
+        }
     }
     for (stream, reason) in &summary.failed_sources {
         println!("  {stream:<16} (optional) {reason}");
