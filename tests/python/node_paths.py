@@ -23,6 +23,19 @@ def sample_settings():
             f"[pipeline]\nsummary_seconds = 0.0\n{prepare}")
 
 
+def objects_settings():
+    """TOML for a node tracking several objects on the two-subject sample, replayed at its own
+    pace: config/objects.toml's [prepare] and [track.objects] with the shipped bundle (one thread)
+    and no periodic summary (`head`), and its source (`source`), to put a [publish] between."""
+    objects = (ROOT / "config/objects.toml").read_text()
+    head = (f'[model]\nbundle = "{ROOT / "models/bundles/cpu-fo"}"\nthreads = 1\n'
+            f'[pipeline]\nsummary_seconds = 0.0\n{objects[objects.index("[prepare]"):objects.index("[publish]")]}')
+    source = objects[objects.index("[[source]]"):].replace(
+        '"../sim/samples/two_subjects.mcap"', f'"{ROOT / "sim/samples/two_subjects.mcap"}"'
+    ).replace("speed = 0.0", "speed = 1.0")
+    return head, source
+
+
 def free_port():
     """A TCP port on loopback that nothing listens on right now."""
     with socket.socket() as s:

@@ -15,7 +15,7 @@ import time
 import websockets
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
-from node_paths import NODE, ROOT, free_port, sample_settings
+from node_paths import NODE, ROOT, free_port, objects_settings, sample_settings
 
 TOPICS = {"/gdvae/cam/state": "gdvae.state/2", "/gdvae/cam/transform": "foxglove.FrameTransform",
           "/gdvae/cam/input": "foxglove.PointCloud", "/gdvae/cam/points": "foxglove.PointCloud",
@@ -158,19 +158,10 @@ def test_with_several_objects_each_track_has_its_own_channels_and_frame(tmp_path
     """`[track.objects] enabled` on the two-subject sample: each track's view on channels of its own
     (`/gdvae/<stream>/<track>/...`, advertised when the track appears), its own object frame and
     scene entity, at its state's centre."""
-    objects = (ROOT / "config/objects.toml").read_text()
-    settings = objects[objects.index("[prepare]"):objects.index("[publish]")]
-    source = objects[objects.index("[[source]]"):].replace(
-        '"../sim/samples/two_subjects.mcap"', f'"{ROOT / "sim/samples/two_subjects.mcap"}"'
-    ).replace("speed = 0.0", "speed = 1.0")
+    head, source = objects_settings()
     port, jsonl = free_port(), tmp_path / "states.jsonl"
     config = tmp_path / "node.toml"
-    config.write_text(f"""[model]
-bundle = "{ROOT / 'models/bundles/cpu-fo'}"
-threads = 1
-[pipeline]
-summary_seconds = 0.0
-{settings}
+    config.write_text(f"""{head}
 [publish]
 zenoh = false
 jsonl = "{jsonl}"

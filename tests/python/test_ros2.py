@@ -19,7 +19,7 @@ import zenoh
 import zenoh.ext
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from node_paths import NODE, ROOT, client, free_port, sample_settings
+from node_paths import NODE, ROOT, client, free_port, objects_settings, sample_settings
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
 # vision_msgs 4.1.1 (Jazzy's; github.com/ros-perception/vision_msgs, branch ros2, e77fa2d), which
@@ -415,22 +415,13 @@ def test_several_objects_give_one_detection_array_per_frame_and_a_frame_per_trac
     replayed at its own pace: each frame's Detection3DArray holds one detection per tracked
     object, id = its track, at that state's centre; /tf names one child frame per track; the
     markers of each track carry ids of their own."""
-    objects = (ROOT / "config/objects.toml").read_text()
-    settings = objects[objects.index("[prepare]"):objects.index("[publish]")]
-    source = objects[objects.index("[[source]]"):].replace(
-        '"../sim/samples/two_subjects.mcap"', f'"{ROOT / "sim/samples/two_subjects.mcap"}"'
-    ).replace("speed = 0.0", "speed = 1.0")
+    head, source = objects_settings()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     config = tmp_path / "objects.toml"
     config.write_text(f"""
 [node]
 name = "ros"
-[model]
-bundle = "{ROOT / 'models/bundles/cpu-fo'}"
-threads = 1
-[pipeline]
-summary_seconds = 0.0
-{settings}
+{head}
 [publish]
 zenoh = false
 [publish.ros2]
