@@ -18,10 +18,11 @@ OUT=${2:-${BENCH_DIR:-/work/data/bench-multi}}
 DURATION=12
 case $SET in
   tune) BASE=600 ;;
+  tune2) BASE=650 ;;
   holdout) BASE=700 ;;
   final) BASE=800 ;;
   returns) BASE=900 DURATION=20 ;;
-  *) echo "bench/multi_object.sh: unknown set '$SET' (tune, holdout, final or returns)" >&2; exit 2 ;;
+  *) echo "bench/multi_object.sh: unknown set '$SET' (tune, tune2, holdout, final or returns)" >&2; exit 2 ;;
 esac
 SIM=./target/release/sim
 [[ -x $SIM ]] || { echo "bench/multi_object.sh: $SIM missing: run 'make sim' first" >&2; exit 2; }

@@ -5,9 +5,12 @@
 //! Frame by frame, candidates (one per cluster that could be an object: its centre in the gravity
 //! frame and its z_I) are matched to tracks at the least total cost, found exactly (Hungarian
 //! method). A pair's cost adds how far the candidate lies from the track's predicted position
-//! (constant velocity), as a fraction of the gate, and how far its z_I lies from the track's fused
-//! z_I, as a fraction of `shape_scale`; a pair beyond the gate cannot match. A candidate no track
-//! takes starts a tentative track, confirmed (given an id) after `birth_frames` frames in a row; a
+//! (constant velocity), in `gate_m`s, and how far its z_I lies from the track's fused z_I, as a
+//! fraction of `shape_scale`; a pair beyond the gate (`gate_m` widened by `max_speed_mps` for the
+//! time the track went unseen) cannot match. A cluster near two tracks with the points of both is
+//! the two merged (`merge_ratio`): they coast through it. A candidate no track takes starts a
+//! tentative track (unless it lies within `fragment_m` of a track's candidate: a piece of that
+//! object), confirmed (given an id) after `birth_frames` frames in a row; a
 //! confirmed track unseen for `lost_s` (an occlusion) ends and joins a gallery of ended tracks
 //! kept `memory_s`. A track confirmed while an ended (or unseen) track's fused z_I lies within
 //! `reid_distance` of its own takes that id back: the same animal, returned.
@@ -48,6 +51,10 @@ pub struct AssociationSettings {
     /// usually has is the two merged into one cluster (walking side by side, one behind the
     /// other): neither takes it, both coast on their motion until they part (0: off).
     pub merge_ratio: f32,
+    /// A candidate no track takes within this distance (m) of a confirmed track's candidate of the
+    /// same frame is a piece of that object split from it (an arm, a head past an occluder), not a
+    /// new one: it starts no track (0: every such candidate does).
+    pub fragment_m: f32,
 }
 
 impl Default for AssociationSettings {
@@ -65,6 +72,7 @@ impl Default for AssociationSettings {
             memory_s: 10.0,
             reid_distance: 1.0,
             merge_ratio: 1.4,
+            fragment_m: 0.5,
         }
     }
 }
@@ -88,6 +96,7 @@ impl AssociationSettings {
             ("memory_s", self.memory_s),
             ("reid_distance", self.reid_distance as f64),
             ("merge_ratio", self.merge_ratio as f64),
+            ("fragment_m", self.fragment_m as f64),
         ];
         for (name, value) in non_negative {
             if !(value >= 0.0 && value.is_finite()) {
@@ -224,7 +233,9 @@ impl Associator {
                             .as_ref()
                             .map_or(0.0, |f| distance(f, &c.z_i) / s.shape_scale as f64);
                         let penalty = if track.id.is_none() { TENTATIVE_PENALTY } else { 0.0 };
-                        d / gate + s.shape_weight as f64 * shape + penalty
+                        // Distance in base gates: a track unseen for a while may match farther,
+                        // but never more cheaply than one seen a frame ago at the same distance.
+                        d / s.gate_m as f64 + s.shape_weight as f64 * shape + penalty
                     })
                     .collect()
             })
@@ -304,9 +315,18 @@ impl Associator {
         }
         let memory_s = self.settings.memory_s;
         self.gallery.retain(|e| time - e.last_seen <= memory_s);
-        // New tentative tracks for what no track took.
+        // New tentative tracks for what no track took, unless it is a piece of an object a
+        // confirmed track took this frame.
+        let taken: Vec<[f32; 3]> = self
+            .tracks
+            .iter()
+            .filter(|t| t.id.is_some() && t.last_seen == time)
+            .map(|t| t.position)
+            .collect();
+        let fragment_m = self.settings.fragment_m as f64;
         for (c, candidate) in candidates.iter().enumerate() {
-            if key_of[c].is_none() && !merged[c] {
+            let fragment = taken.iter().any(|p| distance(p, &candidate.centre) < fragment_m);
+            if key_of[c].is_none() && !merged[c] && !fragment {
                 let key = self.next_key;
                 self.next_key += 1;
                 key_of[c] = Some(key);
