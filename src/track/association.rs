@@ -51,8 +51,8 @@ pub struct AssociationSettings {
     /// usually has is the two merged into one cluster (walking side by side, one behind the
     /// other): neither takes it, both coast on their motion until they part (0: off).
     pub merge_ratio: f32,
-    /// A candidate no track takes within this distance (m) of a confirmed track's candidate of the
-    /// same frame is a piece of that object split from it (an arm, a head past an occluder), not a
+    /// A candidate no track takes within this distance (m, on the ground plane) of a confirmed
+    /// track's candidate of the same frame is a piece of that object split from it (an arm, a head past an occluder), not a
     /// new one: it starts no track (0: every such candidate does).
     pub fragment_m: f32,
 }
@@ -325,7 +325,8 @@ impl Associator {
             .collect();
         let fragment_m = self.settings.fragment_m as f64;
         for (c, candidate) in candidates.iter().enumerate() {
-            let fragment = taken.iter().any(|p| distance(p, &candidate.centre) < fragment_m);
+            // On the ground plane: a piece may lie above the body (a head, a raised arm).
+            let fragment = taken.iter().any(|p| distance(&p[..2], &candidate.centre[..2]) < fragment_m);
             if key_of[c].is_none() && !merged[c] && !fragment {
                 let key = self.next_key;
                 self.next_key += 1;

@@ -243,3 +243,51 @@ fn two_tracks_coast_through_a_merge_and_keep_their_objects() {
     let (_, _, merged_off) = run_with(0.0);
     assert!(merged_off.iter().any(Option::is_some), "without the check a track takes it");
 }
+
+/// A piece split from an object (an arm, 0.3 m from its body) in some frames starts no track of its
+/// own; with `fragment_m = 0` it becomes one.
+#[test]
+fn a_piece_of_an_object_starts_no_track() {
+    let tracks_seen = |fragment_m: f32| {
+        let mut associator = Associator::new(AssociationSettings {
+            fragment_m,
+            ..AssociationSettings::default()
+        });
+        let frames = run(&mut associator, 60, |f| {
+            let mut c = vec![candidate(0.0, 0.0, 0)];
+            if f >= 10 {
+                c.push(Candidate {
+                    centre: [0.3, 0.1, 0.9],
+                    z_i: vec![-1.0; 8],
+                    points: 0,
+                });
+            }
+            c
+        });
+        let mut ids: Vec<u64> = frames.iter().flat_map(|f| f.ids.iter().flatten().copied()).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        ids
+    };
+    assert_eq!(tracks_seen(0.5), vec![1], "the object alone");
+    assert_eq!(tracks_seen(0.0), vec![1, 2], "the piece its own track");
+}
+
+/// One subject leaves; the other walks on 1.1 m from where it was. The leaving subject's track,
+/// coasting with its gate widening, must not take the remaining subject's candidate from that
+/// subject's own track.
+#[test]
+fn a_coasting_track_does_not_take_another_tracks_object() {
+    let mut associator = Associator::new(AssociationSettings::default());
+    let frames = run(&mut associator, 90, |f| {
+        let t = f as f32 / FPS as f32;
+        let mut c = vec![candidate(0.5 * t, 0.0, 0)];
+        if f < 30 {
+            c.push(candidate(0.5 * t, 1.1, 2));
+        }
+        c
+    });
+    let first = frames[20].ids[0];
+    assert!(first.is_some());
+    assert!(frames[30..].iter().all(|f| f.ids[0] == first), "the remaining subject keeps its id");
+}
