@@ -3,7 +3,8 @@
 # overlap in the image, one of them leaving the view and coming back, from fixed seeds. Three sets
 # of the same six scenarios with different seeds: `tune` (settings are chosen on it), `holdout`
 # and `final` (measured, nothing chosen on them); `returns`: fourteen 20 s scenes in which the other
-# subject leaves twice for 3-5 s, to count re-identifications. Then the candidate detection measured on the set
+# subject leaves twice for 3-5 s, to count re-identifications (`returns-tune`: the same scenes from
+# other seeds, for tuning; `tune2`: a second tuning set of the six scenarios). Then the candidate detection measured on the set
 # (bench/detection.rs), and the tracking: `gdvae-node evaluate` with config/objects.toml (MOTA,
 # IDF1, ID switches, returns that got their id back, per-track heading).
 #
@@ -22,7 +23,8 @@ case $SET in
   holdout) BASE=700 ;;
   final) BASE=800 ;;
   returns) BASE=900 DURATION=20 ;;
-  *) echo "bench/multi_object.sh: unknown set '$SET' (tune, tune2, holdout, final or returns)" >&2; exit 2 ;;
+  returns-tune) BASE=950 DURATION=20 ;;
+  *) echo "bench/multi_object.sh: unknown set '$SET' (tune, tune2, holdout, final, returns or returns-tune)" >&2; exit 2 ;;
 esac
 SIM=./target/release/sim
 [[ -x $SIM ]] || { echo "bench/multi_object.sh: $SIM missing: run 'make sim' first" >&2; exit 2; }
@@ -36,7 +38,7 @@ SCENARIOS=(
   "idle-qb|quadruped|biped|idle|3-5"
   "idle-bb|biped|biped|idle|4-7"
 )
-if [[ $SET == returns ]]; then
+if [[ $SET == returns || $SET == returns-tune ]]; then
   # Re-identification (nothing is chosen on it): the other subject leaves twice for 3-5 s; ten
   # scenes pair the families (20 returns beside the other family), four pair one family (8).
   SCENARIOS=()
