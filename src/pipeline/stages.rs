@@ -373,8 +373,10 @@ fn one_object(
 /// The states of every tracked object of `frame`: its candidates associated with the stream's
 /// tracks, each confirmed track's candidate through that track's filters. A frame whose
 /// candidates all belong to tentative tracks publishes nothing (counted).
-fn several_objects(objects: &mut ObjectTracks, frame: EncodedFrame, node: &str, stats: &Stats) -> Vec<Output> {
-    let origin = &frame.origin;
+fn several_objects(objects: &mut ObjectTracks, mut frame: EncodedFrame, node: &str, stats: &Stats) -> Vec<Output> {
+    // The frame's decimated input cloud (prepare hands it with the first candidate) goes with the
+    // first state published.
+    let mut input = frame.objects.iter_mut().find_map(|(prepared, _)| prepared.input.take());
     let candidates: Vec<Candidate> = frame
         .objects
         .iter()
@@ -384,6 +386,7 @@ fn several_objects(objects: &mut ObjectTracks, frame: EncodedFrame, node: &str, 
             points: prepared.points_kept,
         })
         .collect();
+    let origin = &frame.origin;
     let time = seconds(origin.sensor_stamp_ns, origin.ingest_unix_ns);
     let (tracked, events) = objects.associate(time, &candidates);
     report_events(&origin.stream, origin.sequence, &events, stats);
@@ -394,22 +397,26 @@ fn several_objects(objects: &mut ObjectTracks, frame: EncodedFrame, node: &str, 
     let count = tracked.len();
     let mut outputs = Vec::with_capacity(count);
     for (index, t) in tracked.iter().enumerate() {
-        let (prepared, encoding) = &frame.objects[t.candidate];
-        let observed = observed(&frame, prepared, encoding);
-        match contained("track", || objects.filters(t.id).state(node, &observed, t.dt)) {
+        let result = {
+            let (prepared, encoding) = &frame.objects[t.candidate];
+            let observed = observed(&frame, prepared, encoding);
+            contained("track", || objects.filters(t.id).state(node, &observed, t.dt))
+        };
+        match result {
             Ok(mut state) => {
                 state.track = Some(t.id);
                 state.of_frame = Some((index, count));
-                state.prepared = Some(std::sync::Arc::new(prepared.points.clone()));
-                state.input = prepared.input.clone().map(std::sync::Arc::new);
-                state.sensor_frame = origin.sensor_frame.clone();
+                let points = std::mem::take(&mut frame.objects[t.candidate].0.points);
+                state.prepared = Some(std::sync::Arc::new(points));
+                state.input = input.take().map(std::sync::Arc::new);
+                state.sensor_frame = frame.origin.sensor_frame.clone();
                 outputs.push(Output::State(Box::new(state)));
             }
             Err(message) => {
                 objects.restart(t.id);
-                stats.stream(&origin.stream).add_rejected("track");
+                stats.stream(&frame.origin.stream).add_rejected("track");
                 let reason = format!("track {}: {message}", t.id);
-                outputs.push(rejected_output(node, origin.clone().reject("track", reason)));
+                outputs.push(rejected_output(node, frame.origin.clone().reject("track", reason)));
             }
         }
     }

@@ -191,9 +191,12 @@ impl FoxgloveSink {
                 .name("publish:foxglove".into())
                 .spawn(move || {
                     for (state, shape) in states {
-                        if let Some(channels) = channels.get(state.object_name().as_ref()) {
+                        // The input cloud on the stream's channel, the rest on the object's.
+                        let object = channels.get(state.object_name().as_ref());
+                        if let (Some(object), Some(stream)) = (object, channels.get(&state.stream)) {
                             send(
-                                channels,
+                                object,
+                                stream,
                                 &state,
                                 shape.as_deref().map(Vec::as_slice),
                                 &frame_id,
@@ -219,10 +222,15 @@ impl FoxgloveSink {
     /// objects `/gdvae/<stream>/<track>/...`, declared when the track first shows).
     fn publish_state(&mut self, state: &State) -> Result<(), PublishError> {
         let object = state.object_name();
-        if !self.channels.contains_key(object.as_ref()) {
-            self.declare(&[object.to_string()])?;
+        let missing: Vec<String> = [object.as_ref(), state.stream.as_str()]
+            .into_iter()
+            .filter(|name| !self.channels.contains_key(*name))
+            .map(str::to_string)
+            .collect();
+        if !missing.is_empty() {
+            self.declare(&missing)?;
         }
-        if !self.channels[object.as_ref()].watched() {
+        if !(self.channels[object.as_ref()].watched() || self.channels[&state.stream].input.has_sinks()) {
             return Ok(());
         }
         let now = std::time::Instant::now();
@@ -251,7 +259,14 @@ impl FoxgloveSink {
 }
 
 /// One state's messages on the channels a viewer subscribes to.
-fn send(channels: &StreamChannels, state: &State, shape: Option<&[[f32; 3]]>, frame_id: &str, metres_per_unit: f32) {
+fn send(
+    channels: &StreamChannels,
+    stream_channels: &StreamChannels,
+    state: &State,
+    shape: Option<&[[f32; 3]]>,
+    frame_id: &str,
+    metres_per_unit: f32,
+) {
     let log_time = state.stamps.publish_ns;
     if channels.state.has_sinks() {
         match serde_json::to_vec(state) {
@@ -268,7 +283,7 @@ fn send(channels: &StreamChannels, state: &State, shape: Option<&[[f32; 3]]>, fr
     channels.transform.log_with_time(&scene.transform, log_time);
     channels.scene.log_with_time(&scene.scene, log_time);
     for (channel, cloud) in [
-        (&channels.input, &scene.input),
+        (&stream_channels.input, &scene.input),
         (&channels.points, &scene.points),
         (&channels.shape, &scene.shape),
     ] {

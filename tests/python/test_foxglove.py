@@ -171,6 +171,7 @@ port = {port}
 {source}
 """)
     topics = [f"/gdvae/two/{track}/{what}" for track in (1, 2) for what in ("transform", "scene", "points")]
+    topics.append("/gdvae/two/input")
     node = subprocess.Popen([NODE, "-q", "run", "--config", str(config)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE)
     try:
@@ -200,3 +201,6 @@ port = {port}
             (entity,) = scene.entities
             assert entity.id == f"two/{track}" and entity.frame_id == f"gdvae/two/{track}"
         assert channels[f"/gdvae/two/{track}/points"]["schemaName"] == "foxglove.PointCloud"
+    # The input cloud is the stream's, once a frame, on the stream's channel.
+    inputs = received["/gdvae/two/input"]
+    assert inputs and all(500 < len(xyz_of(cloud)) <= 2048 for _, cloud in inputs)
