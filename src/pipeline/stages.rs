@@ -17,7 +17,7 @@ use crate::sources::Ingest;
 use crate::state::{self, Output};
 use crate::stats::Stats;
 use crate::track::association::{AssociationSettings, Candidate, TrackEvent};
-use crate::track::{ObjectTracks, Observed, StreamTracker};
+use crate::track::{step_dt, ObjectTracks, Observed, StreamTracker};
 
 /// Reads every source channel; gives each item its ticket. Ends when every source has ended, or
 /// after stop once the live sources' queues are empty.
@@ -344,11 +344,11 @@ fn one_object(
     settings: &crate::track::TrackSettings,
     stats: &Stats,
 ) -> Output {
-    let nominal_dt = 1.0 / settings.nominal_rate_hz;
-    let dt = match (frame.origin.sensor_stamp_ns, stream.last_stamp_ns) {
-        (Some(now), Some(last)) if now > last && now - last < 1_000_000_000 => (now - last) as f32 * 1e-9,
-        _ => nominal_dt,
+    let gap_s = match (frame.origin.sensor_stamp_ns, stream.last_stamp_ns) {
+        (Some(now), Some(last)) if now > last => Some((now - last) as f32 * 1e-9),
+        _ => None,
     };
+    let dt = step_dt(gap_s, 1.0 / settings.nominal_rate_hz);
     if frame.origin.sensor_stamp_ns.is_some() {
         stream.last_stamp_ns = frame.origin.sensor_stamp_ns;
     }

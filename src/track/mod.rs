@@ -27,4 +27,4 @@ pub use pose::{confidence_from_log_variance, unwrap, yaw_of, OneEuro, Pose, Pose
 pub use settings::{ChangeDetector, HeadingMode, Smoothing, TrackSettings};
 pub use shape::{IdentityChange, ShapeFilter, ShapeUpdate};
 pub use state::Observed;
-pub use stream::{with_yaw, StreamTracker, Tracked};
+pub use stream::{step_dt, with_yaw, StreamTracker, Tracked};

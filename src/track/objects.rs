@@ -7,7 +7,7 @@ use std::collections::HashMap;
 
 use super::association::{Associated, Associator, Candidate, TrackEvent};
 use super::settings::TrackSettings;
-use super::stream::StreamTracker;
+use super::stream::{step_dt, StreamTracker};
 
 /// One track's filters and when they last saw their object.
 struct Filters {
@@ -60,8 +60,7 @@ impl ObjectTracks {
             .map(|(candidate, id)| {
                 let fresh = self.fresh(time);
                 let filters = self.filters.entry(id).or_insert(fresh);
-                let gap = time - filters.last_time;
-                let dt = if gap > 0.0 && gap < 1.0 { gap as f32 } else { nominal_dt };
+                let dt = step_dt(Some((time - filters.last_time) as f32), nominal_dt);
                 filters.last_time = time;
                 TrackedCandidate { candidate, id, dt }
             })

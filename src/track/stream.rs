@@ -59,6 +59,16 @@ impl StreamTracker {
     }
 }
 
+/// The time step the filters take for a frame `gap_s` seconds after the object's previous one: the
+/// gap itself, or the nominal period (`nominal_dt`) when it is not a usable step (none, backwards,
+/// or a second or more: the object was away, and its filters do not extrapolate across that).
+pub fn step_dt(gap_s: Option<f32>, nominal_dt: f32) -> f32 {
+    match gap_s {
+        Some(gap) if gap > 0.0 && gap < 1.0 => gap,
+        _ => nominal_dt,
+    }
+}
+
 /// `q` [w, x, y, z] turned about +z so that its yaw becomes `yaw`.
 pub fn with_yaw(q: [f32; 4], yaw: f32) -> [f32; 4] {
     pose::turn_rotation(q, yaw - yaw_of(&q))
