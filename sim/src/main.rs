@@ -67,6 +67,9 @@ impl From<PoseArg> for PoseMode {
 enum MotionArg {
     Walk,
     Idle,
+    /// Back and forth along a straight line across the view (others only by intent, though any
+    /// subject may).
+    Cross,
 }
 
 impl From<MotionArg> for MotionKind {
@@ -74,6 +77,7 @@ impl From<MotionArg> for MotionKind {
         match arg {
             MotionArg::Walk => MotionKind::Walk,
             MotionArg::Idle => MotionKind::Idle,
+            MotionArg::Cross => MotionKind::Cross,
         }
     }
 }
@@ -125,6 +129,12 @@ struct ScenarioArgs {
     /// second 0.9 m to its right, so that the paths cross and the subjects pass behind each other.
     #[arg(long, value_delimiter = ',', value_parser = parse_offset, default_value = "0:0.9,0:-0.9", allow_hyphen_values = true)]
     others_offset: Vec<[f64; 2]>,
+    /// How the other subjects move (default: as the primary, `--motion`). `cross`: back and forth
+    /// along a 4 m line across the view through its stage's centre, slanted up to 26 degrees; with
+    /// `--others-offset 0.7:0` it passes in front of the primary twice in 12 s, with `-0.9:0`
+    /// behind it, so that their paths cross in the image and one hides the other.
+    #[arg(long, value_enum)]
+    others_motion: Option<MotionArg>,
     /// Least distance (m) between where two subjects stand, so that bodies never pass through
     /// each other: each other subject's path (its phase) is drawn again until it keeps this
     /// distance from the subjects before it at every frame (0: no check).
@@ -142,7 +152,10 @@ const MAX_DRAWS: u64 = 200;
 fn parse_offset(text: &str) -> Result<[f64; 2], String> {
     let bad = || format!("'{text}': expected X:Y in metres, e.g. -1.8:0");
     let (x, y) = text.split_once(':').ok_or_else(bad)?;
-    Ok([x.trim().parse().map_err(|_| bad())?, y.trim().parse().map_err(|_| bad())?])
+    Ok([
+        x.trim().parse().map_err(|_| bad())?,
+        y.trim().parse().map_err(|_| bad())?,
+    ])
 }
 
 fn parse_away(text: &str) -> Result<Away, String> {
@@ -188,7 +201,10 @@ impl ScenarioArgs {
         let fps = motion.fps;
         let present = |id: usize, index: usize| {
             let time = index as f64 / fps;
-            !self.away.iter().any(|a| a.subject == id && (a.from..a.to).contains(&time))
+            !self
+                .away
+                .iter()
+                .any(|a| a.subject == id && (a.from..a.to).contains(&time))
         };
         let mut placed: Vec<Vec<[f64; 2]>> = vec![planned_positions(&motion)];
         let mut others = Vec::new();
@@ -197,6 +213,7 @@ impl ScenarioArgs {
             let spec = (0..MAX_DRAWS)
                 .map(|draw| MotionSpec {
                     families: vec![Family::from(*family)],
+                    kind: self.others_motion.unwrap_or(self.motion).into(),
                     switch_times: Vec::new(),
                     seed: seeds::derive(self.seed, &[6, k as u64, draw]),
                     ..motion.clone()
@@ -219,7 +236,12 @@ impl ScenarioArgs {
                     self.others_separation
                 );
             };
-            placed.push(planned_positions(&spec).iter().map(|p| [p[0] + offset[0], p[1] + offset[1]]).collect());
+            placed.push(
+                planned_positions(&spec)
+                    .iter()
+                    .map(|p| [p[0] + offset[0], p[1] + offset[1]])
+                    .collect(),
+            );
             others.push((spec, *offset));
         }
         Ok(Scenario::new(motion, view)?.with_others(others, self.away.clone(), self.others_separation)?)

@@ -4,9 +4,11 @@
 //! heading (yaw) and position change smoothly, and where occasionally another individual replaces
 //! the first, so that fusing `z_I` and detecting the change can be tested against ground truth.
 //!
-//! Two kinds of motion: `walk` (a gait cycle driven by the distance travelled along a smooth
-//! figure-of-eight path, heading along the path) and `idle` (standing, turning slowly in place,
-//! shifting through poses of the sigma 0.2 prior). Both add a slow random "wobble" so no two cycles
+//! Three kinds of motion: `walk` (a gait cycle driven by the distance travelled along a smooth
+//! figure-of-eight path, heading along the path), `cross` (the same gait, back and forth along a
+//! straight line 4 m long across the view, turning at its ends: a subject that passes in front of or
+//! behind another, so that their paths cross in the image) and `idle` (standing, turning slowly in
+//! place, shifting through poses of the sigma 0.2 prior). Both add a slow random "wobble" so no two cycles
 //! repeat exactly. Every frame is a pure function of the spec and its index.
 
 use std::f64::consts::TAU;
@@ -27,6 +29,14 @@ use crate::skinning::place;
 pub enum MotionKind {
     Walk,
     Idle,
+    Cross,
+}
+
+impl MotionKind {
+    /// Whether the subject walks (a gait cycle along its path) rather than stands.
+    pub fn walks(self) -> bool {
+        matches!(self, Self::Walk | Self::Cross)
+    }
 }
 
 /// What to simulate. Checked by [`MotionSpec::validate`].
@@ -187,7 +197,7 @@ impl Motion {
         let (id, subject) = &self.subjects[subject_index];
         let sample = self.path.at(index);
         let mut theta = self.wobbles[subject_index].theta(time);
-        if self.spec.kind == MotionKind::Walk {
+        if self.spec.kind.walks() {
             let gait = gait_theta(&subject.skeleton, subject.family, sample.gait_phase);
             theta.iter_mut().zip(gait).for_each(|(t, g)| *t += g);
         }
@@ -229,8 +239,13 @@ struct PathSample {
     gait_phase: f64,
 }
 
-/// Period of the figure-of-eight (s) and turning rate when idle (rad/s).
+/// Period of the figure-of-eight and of a crossing's there and back (s), and turning rate when
+/// idle (rad/s).
 const PATH_PERIOD: f64 = 12.0;
+/// Half the length of a crossing's line (m): at most 1.05 m/s mid-line, for the period above.
+const CROSS_HALF_LENGTH: f64 = 2.0;
+/// Largest angle between a crossing's line and the view's across direction (world y), rad.
+const CROSS_SLANT: f64 = 0.45;
 const IDLE_TURN_RATE: f64 = 0.35;
 /// Fastest a walking subject turns (rad/s): a brisk turn on the spot. With some start phases the
 /// path nearly stops and reverses, and its direction swings by up to 180 degrees within a few
@@ -238,57 +253,79 @@ const IDLE_TURN_RATE: f64 = 0.35;
 /// moment while it hardly moves.
 pub const MAX_TURN_RATE: f64 = std::f64::consts::PI;
 
-/// The path's random phases (x, y) and starting yaw, from the spec's seed.
-fn path_phases(spec: &MotionSpec) -> (f64, f64, f64) {
-    let mut rng = seeds::rng(seeds::derive(spec.seed, &[3]));
-    let phase_x: f64 = rng.random_range(0.0..TAU);
-    let phase_y: f64 = rng.random_range(0.0..TAU);
-    let start_yaw: f64 = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
-    (phase_x, phase_y, start_yaw)
+/// A path's random draws, from the spec's seed.
+#[derive(Debug, Clone, Copy)]
+struct PathPhases {
+    x: f64,
+    y: f64,
+    start_yaw: f64,
+    /// A crossing's line: its angle from world y (rad).
+    slant: f64,
 }
 
-/// Where a subject of `spec` stands at `t` (s): on a figure of eight whose lobes lie across the
-/// view (y), so its tightest turns (radius ay^2 / (8 ax), about 0.15 m for the default area) stay
-/// gentle enough to walk; idle, at one place.
-fn planned_position(spec: &MotionSpec, (phase_x, phase_y): (f64, f64), t: f64) -> [f64; 2] {
-    let omega = TAU / PATH_PERIOD;
-    let [ax, ay] = spec.area;
-    match spec.kind {
-        MotionKind::Walk => [ax * (2.0 * omega * t + phase_x).sin(), ay * (omega * t + phase_y).sin()],
-        MotionKind::Idle => [0.3 * ax * phase_x.cos(), 0.3 * ay * phase_y.cos()],
+impl PathPhases {
+    fn of(spec: &MotionSpec) -> Self {
+        let mut rng = seeds::rng(seeds::derive(spec.seed, &[3]));
+        let x: f64 = rng.random_range(0.0..TAU);
+        let y: f64 = rng.random_range(0.0..TAU);
+        let start_yaw: f64 = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+        // Drawn last so that the other kinds' draws stay what they were.
+        let slant = rng.random_range(-CROSS_SLANT..CROSS_SLANT);
+        Self { x, y, start_yaw, slant }
+    }
+
+    /// Where a subject of `spec` stands at `t` (s) and its velocity (m/s): on a figure of eight
+    /// whose lobes lie across the view (y), so its tightest turns (radius ay^2 / (8 ax), about
+    /// 0.15 m for the default area) stay gentle enough to walk; crossing, back and forth along its
+    /// line through the stage centre, slowing to turn at the ends; idle, at one place.
+    fn at(&self, spec: &MotionSpec, t: f64) -> ([f64; 2], [f64; 2]) {
+        let omega = TAU / PATH_PERIOD;
+        let [ax, ay] = spec.area;
+        match spec.kind {
+            MotionKind::Walk => (
+                [ax * (2.0 * omega * t + self.x).sin(), ay * (omega * t + self.y).sin()],
+                [
+                    2.0 * ax * omega * (2.0 * omega * t + self.x).cos(),
+                    ay * omega * (omega * t + self.y).cos(),
+                ],
+            ),
+            MotionKind::Cross => {
+                let (along, speed) = (
+                    CROSS_HALF_LENGTH * (omega * t + self.x).sin(),
+                    CROSS_HALF_LENGTH * omega * (omega * t + self.x).cos(),
+                );
+                let direction = [self.slant.sin(), self.slant.cos()];
+                (
+                    [along * direction[0], along * direction[1]],
+                    [speed * direction[0], speed * direction[1]],
+                )
+            }
+            MotionKind::Idle => ([0.3 * ax * self.x.cos(), 0.3 * ay * self.y.cos()], [0.0, 0.0]),
+        }
     }
 }
 
 /// Where a subject of `spec` stands at each frame (m, world x, y), without building it: to place
 /// several subjects apart before their meshes are made.
 pub fn planned_positions(spec: &MotionSpec) -> Vec<[f64; 2]> {
-    let (phase_x, phase_y, _) = path_phases(spec);
+    let phases = PathPhases::of(spec);
     (0..spec.frame_count())
-        .map(|index| planned_position(spec, (phase_x, phase_y), index as f64 / spec.fps))
+        .map(|index| phases.at(spec, index as f64 / spec.fps).0)
         .collect()
 }
 
 impl Path {
     fn new(spec: &MotionSpec, subjects: &[&Subject]) -> Self {
-        let (phase_x, phase_y, start_yaw) = path_phases(spec);
-        let omega = TAU / PATH_PERIOD;
-        let [ax, ay] = spec.area;
-        let position = |t: f64| planned_position(spec, (phase_x, phase_y), t);
-        let velocity = |t: f64| {
-            [
-                2.0 * ax * omega * (2.0 * omega * t + phase_x).cos(),
-                ay * omega * (omega * t + phase_y).cos(),
-            ]
-        };
+        let phases = PathPhases::of(spec);
         let dt = 1.0 / spec.fps;
         let mut samples = Vec::with_capacity(spec.frame_count());
         let (mut yaw, mut gait_phase) = (0.0, 0.0);
         for index in 0..spec.frame_count() {
             let t = index as f64 * dt;
             let subject = subjects[spec.switch_times.iter().filter(|&&s| s <= t).count()];
+            let (position, [vx, vy]) = phases.at(spec, t);
             match spec.kind {
-                MotionKind::Walk => {
-                    let [vx, vy] = velocity(t);
+                MotionKind::Walk | MotionKind::Cross => {
                     let heading = vy.atan2(vx);
                     let max_turn = MAX_TURN_RATE * dt;
                     yaw = if index == 0 {
@@ -300,14 +337,14 @@ impl Path {
                         gait_phase += vx.hypot(vy) * dt / stride_length(subject);
                     }
                     samples.push(PathSample {
-                        position: position(t),
+                        position,
                         yaw,
                         gait_phase,
                     });
                 }
                 MotionKind::Idle => samples.push(PathSample {
-                    position: position(t),
-                    yaw: start_yaw + IDLE_TURN_RATE * t,
+                    position,
+                    yaw: phases.start_yaw + IDLE_TURN_RATE * t,
                     gait_phase: 0.0,
                 }),
             }
@@ -354,10 +391,7 @@ impl Wobble {
 
     fn sample(subject: &Subject, kind: MotionKind, rng: &mut impl Rng) -> Self {
         // Walking adds a small drift on top of the gait; idling is all drift, at the prior's scale.
-        let scale = match kind {
-            MotionKind::Walk => 0.35,
-            MotionKind::Idle => 1.0,
-        };
+        let scale = if kind.walks() { 0.35 } else { 1.0 };
         let poses = (0..Self::COMPONENTS)
             .map(|_| {
                 let theta = subject.sample_theta(PoseMode::Gaussian, rng);

@@ -212,6 +212,54 @@ fn a_walking_subject_never_turns_faster_than_a_body_can() {
     );
 }
 
+/// `cross`: there and back along a 4 m line across the view (world y, slanted at most 26 degrees)
+/// through the stage's centre, heading along the line, walking (the gait advances), turning at
+/// the ends no faster than a body can.
+#[test]
+fn a_crossing_subject_walks_there_and_back_along_a_line_across_the_view() {
+    for seed in 0..6 {
+        let spec = MotionSpec {
+            kind: MotionKind::Cross,
+            duration: 12.0,
+            seed,
+            ..walk_spec(vec![])
+        };
+        let motion = Motion::new(spec).unwrap();
+        let frames: Vec<_> = (0..motion.frame_count())
+            .step_by(3)
+            .map(|i| motion.frame(i).unwrap().0)
+            .collect();
+        let ys: Vec<f64> = frames.iter().map(|f| f.translation[1]).collect();
+        let span = ys.iter().cloned().fold(f64::MIN, f64::max) - ys.iter().cloned().fold(f64::MAX, f64::min);
+        assert!(span > 3.4, "seed {seed}: crosses {span} m of the view");
+        for f in &frames {
+            let [x, y, _] = f.translation;
+            assert!(
+                x.abs() <= y.abs() * 0.46f64.tan() + 1e-9,
+                "seed {seed}: ({x}, {y}) off a line through the centre within 26 degrees of y"
+            );
+        }
+        // Mid-line (fast), the heading is along the line, one way or the other.
+        let middle = frames
+            .iter()
+            .min_by(|a, b| a.translation[1].abs().total_cmp(&b.translation[1].abs()))
+            .unwrap();
+        let across = middle.yaw.sin().abs();
+        assert!(
+            across > 0.85,
+            "seed {seed}: heading {} rad is not across the view",
+            middle.yaw
+        );
+        assert!(
+            frames.windows(2).all(|w| w[1].gait_phase >= w[0].gait_phase) && frames.last().unwrap().gait_phase > 3.0
+        );
+        let yaws: Vec<f64> = (0..motion.frame_count()).map(|i| motion.yaw_at(i)).collect();
+        assert!(yaws
+            .windows(2)
+            .all(|w| (w[1] - w[0]).abs() * 30.0 <= MAX_TURN_RATE + 1e-9));
+    }
+}
+
 #[test]
 fn bad_motion_and_view_parameters_are_rejected_by_name() {
     let mut spec = walk_spec(vec![3.0]);
@@ -334,15 +382,20 @@ fn subjects_that_would_pass_through_each_other_are_refused() {
         ..spec.clone()
     };
     let scene = |offset: [f64; 2], separation: f64| {
-        Scenario::new(spec.clone(), ViewSpec::default())
-            .unwrap()
-            .with_others(vec![(other.clone(), offset)], vec![], separation)
+        Scenario::new(spec.clone(), ViewSpec::default()).unwrap().with_others(
+            vec![(other.clone(), offset)],
+            vec![],
+            separation,
+        )
     };
     let Err(error) = scene([0.0, 0.9], 1.0) else {
         panic!("overlapping stages accepted")
     };
     let message = error.to_string();
-    assert!(message.contains("subjects 0 and 1") && message.contains("--others-offset"), "{message}");
+    assert!(
+        message.contains("subjects 0 and 1") && message.contains("--others-offset"),
+        "{message}"
+    );
     assert!(scene([0.0, 0.9], 0.0).is_ok(), "no check asked for");
     assert!(scene([-1.8, 0.0], 1.0).is_ok(), "1.8 m behind: never closer than 1 m");
 }
