@@ -38,13 +38,15 @@ bench-tracking: onnxruntime node sim
 	bench/tracking.sh final
 
 # The multi-object benchmark (docs/tracking.md "Several objects"): its recordings, the candidate
-# detection and the tracking (evaluate with config/objects.toml) on `tune`, `holdout`, `final` and
-# the re-identification set `returns`. Recordings in /work/data/bench-multi, or $BENCH_DIR.
+# detection and the tracking (evaluate with config/objects.toml) on `tune`, `holdout`, `final`, the
+# re-identification set `returns` and the crossing-paths set `cross`. Recordings in
+# /work/data/bench-multi, or $BENCH_DIR.
 bench-multi: sim
 	bench/multi_object.sh tune
 	bench/multi_object.sh holdout
 	bench/multi_object.sh final
 	bench/multi_object.sh returns
+	bench/multi_object.sh cross
 
 # The paper-structured evaluation set (models/README.md "Evaluation split"): 300 subjects per
 # family, one pose each, all in the test split, from a seed no training set uses.

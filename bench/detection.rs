@@ -6,7 +6,7 @@
 //! one cluster), and candidates that match no subject.
 //!
 //!     cargo run --release --example detection -- REC.mcap... [--crop-half-m 2.5] [--match-m 0.5]
-//!         [--min-visible 100] [--cluster-m M] [--min-points N]
+//!         [--min-visible 100] [--cluster-m M] [--stretch-from M] [--min-points N]
 //!
 //! Settings: config/replay.toml's [prepare] with its crop widened to +-crop-half-m around the
 //! stage and the recording's own sensor pose; candidates at most 2.5 m a side, at most 6.
@@ -33,7 +33,7 @@ fn ground(centre: [f32; 3]) -> [f64; 2] {
 fn main() -> anyhow::Result<()> {
     let mut files = Vec::new();
     let (mut crop_half, mut match_m, mut min_visible) = (2.5f32, 0.5f64, 100u64);
-    let (mut cluster_m, mut min_points) = (None, None);
+    let (mut cluster_m, mut stretch_from, mut min_points) = (None, None, None);
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
         let mut value = |name: &str| -> anyhow::Result<String> {
@@ -44,17 +44,19 @@ fn main() -> anyhow::Result<()> {
             "--match-m" => match_m = value("--match-m")?.parse()?,
             "--min-visible" => min_visible = value("--min-visible")?.parse()?,
             "--cluster-m" => cluster_m = Some(value("--cluster-m")?.parse()?),
+            "--stretch-from" => stretch_from = Some(value("--stretch-from")?.parse()?),
             "--min-points" => min_points = Some(value("--min-points")?.parse()?),
             _ => files.push(arg),
         }
     }
     anyhow::ensure!(
         !files.is_empty(),
-        "usage: detection REC.mcap... [--crop-half-m M] [--match-m M] [--min-visible N] [--cluster-m M] [--min-points N]"
+        "usage: detection REC.mcap... [--crop-half-m M] [--match-m M] [--min-visible N] [--cluster-m M] [--stretch-from M] [--min-points N]"
     );
     let config = Config::load(Path::new("config/replay.toml"))?;
     let mut settings = config.prepare.clone();
     settings.cluster_m = cluster_m.unwrap_or(settings.cluster_m);
+    settings.cluster_stretch_from_m = stretch_from.unwrap_or(settings.cluster_stretch_from_m);
     settings.min_points = min_points.unwrap_or(settings.min_points);
     if let Some(crop) = settings.crop.as_mut() {
         crop[0] = -crop_half;
@@ -176,9 +178,10 @@ fn main() -> anyhow::Result<()> {
     );
     println!(
         "command: cargo run --release --example detection -- {} --crop-half-m {crop_half} --match-m {match_m} \
-         --min-visible {min_visible} --cluster-m {} --min-points {}",
+         --min-visible {min_visible} --cluster-m {} --stretch-from {} --min-points {}",
         files.join(" "),
         settings.cluster_m,
+        settings.cluster_stretch_from_m,
         settings.min_points
     );
     Ok(())

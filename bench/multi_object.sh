@@ -4,7 +4,11 @@
 # of the same six scenarios with different seeds: `tune` (settings are chosen on it), `holdout`
 # and `final` (measured, nothing chosen on them); `returns`: fourteen 20 s scenes in which the other
 # subject leaves twice for 3-5 s, to count re-identifications (`returns-tune`: the same scenes from
-# other seeds, for tuning; `tune2`: a second tuning set of the six scenarios). Then the candidate detection measured on the set
+# other seeds, for tuning; `tune2`: a second tuning set of the six scenarios); `cross`: eight 12 s
+# scenes in which the other subject walks back and forth across the view (`--others-motion cross`)
+# in front of the primary or behind it, so that their paths cross in the image twice a scene and
+# one hides the other (`cross-tune`: the same scenes from other seeds, for tuning). Then the
+# candidate detection measured on the set
 # (bench/detection.rs), and the tracking: `gdvae-node evaluate` with config/objects.toml (MOTA,
 # IDF1, ID switches, returns that got their id back, per-track heading).
 #
@@ -14,7 +18,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SET=${1:?usage: bench/multi_object.sh tune|holdout|final [OUT_DIR]}
+SET=${1:?usage: bench/multi_object.sh tune|tune2|holdout|final|returns|returns-tune|cross|cross-tune [OUT_DIR]}
 OUT=${2:-${BENCH_DIR:-/work/data/bench-multi}}
 DURATION=12
 case $SET in
@@ -24,41 +28,65 @@ case $SET in
   final) BASE=800 ;;
   returns) BASE=900 DURATION=20 ;;
   returns-tune) BASE=950 DURATION=20 ;;
-  *) echo "bench/multi_object.sh: unknown set '$SET' (tune, tune2, holdout, final, returns or returns-tune)" >&2; exit 2 ;;
+  cross-tune) BASE=1000 ;;
+  cross) BASE=1100 ;;
+  *) echo "bench/multi_object.sh: unknown set '$SET' (tune, tune2, holdout, final, returns, returns-tune, cross or cross-tune)" >&2; exit 2 ;;
 esac
 SIM=./target/release/sim
 [[ -x $SIM ]] || { echo "bench/multi_object.sh: $SIM missing: run 'make sim' first" >&2; exit 2; }
 
-# name | primary's family | the other's | motion | away intervals of the other (s)
+# name | primary's family | the other's | motion | away intervals of the other (s) | the other's
+# motion and stage (empty: as the primary, beside it)
 SCENARIOS=(
-  "walk-qb|quadruped|biped|walk|4-6"
-  "walk-bq|biped|quadruped|walk|6-9"
-  "walk-qq|quadruped|quadruped|walk|4-6"
-  "walk-bb|biped|biped|walk|5-8"
-  "idle-qb|quadruped|biped|idle|3-5"
-  "idle-bb|biped|biped|idle|4-7"
+  "walk-qb|quadruped|biped|walk|4-6|"
+  "walk-bq|biped|quadruped|walk|6-9|"
+  "walk-qq|quadruped|quadruped|walk|4-6|"
+  "walk-bb|biped|biped|walk|5-8|"
+  "idle-qb|quadruped|biped|idle|3-5|"
+  "idle-bb|biped|biped|idle|4-7|"
 )
 if [[ $SET == returns || $SET == returns-tune ]]; then
   # Re-identification (nothing is chosen on it): the other subject leaves twice for 3-5 s; ten
   # scenes pair the families (20 returns beside the other family), four pair one family (8).
   SCENARIOS=()
   for k in 0 1 2 3 4; do
-    SCENARIOS+=("walk-qb$k|quadruped|biped|walk|3-$((6 + k % 3)),1:11-$((14 + k % 3))")
-    SCENARIOS+=("walk-bq$k|biped|quadruped|walk|3-$((6 + k % 3)),1:11-$((14 + k % 3))")
+    SCENARIOS+=("walk-qb$k|quadruped|biped|walk|3-$((6 + k % 3)),1:11-$((14 + k % 3))|")
+    SCENARIOS+=("walk-bq$k|biped|quadruped|walk|3-$((6 + k % 3)),1:11-$((14 + k % 3))|")
   done
   for k in 0 1; do
-    SCENARIOS+=("walk-qq$k|quadruped|quadruped|walk|3-7,1:11-15")
-    SCENARIOS+=("walk-bb$k|biped|biped|walk|3-7,1:11-15")
+    SCENARIOS+=("walk-qq$k|quadruped|quadruped|walk|3-7,1:11-15|")
+    SCENARIOS+=("walk-bb$k|biped|biped|walk|3-7,1:11-15|")
   done
+fi
+if [[ $SET == cross || $SET == cross-tune ]]; then
+  # Crossing paths: the other subject crosses the view 1 m in front of the primary's stage
+  # (2.2 m from the camera) or 0.9 m behind it (4.1 m), there and back in 12 s; it stays.
+  FRONT="cross 1.0:0" BEHIND="cross -0.9:0"
+  SCENARIOS=(
+    "front-qb|quadruped|biped|walk||$FRONT"
+    "behind-bq|biped|quadruped|walk||$BEHIND"
+    "front-bb|biped|biped|walk||$FRONT"
+    "behind-qq|quadruped|quadruped|walk||$BEHIND"
+    "front-bq-idle|biped|quadruped|idle||$FRONT"
+    "behind-qb-idle|quadruped|biped|idle||$BEHIND"
+    "front-qq|quadruped|quadruped|walk||$FRONT"
+    "behind-bb|biped|biped|walk||$BEHIND"
+  )
 fi
 mkdir -p "$OUT/$SET"
 index=0
 for scenario in "${SCENARIOS[@]}"; do
-  IFS='|' read -r name primary other motion away <<< "$scenario"
+  IFS='|' read -r name primary other motion away others_path <<< "$scenario"
   file=$OUT/$SET/$name.mcap
+  extra=()
+  [[ -n $away ]] && extra+=(--away "1:$away")
+  if [[ -n $others_path ]]; then
+    read -r others_motion others_offset <<< "$others_path"
+    extra+=(--others-motion "$others_motion" "--others-offset=$others_offset")
+  fi
   if [[ ! -f $file ]]; then
     $SIM record --out "$file" --families "$primary" --others "$other" --motion "$motion" \
-      --away "1:$away" --duration $DURATION --decimation 2 --seed $((BASE + index)) >&2
+      "${extra[@]}" --duration $DURATION --decimation 2 --seed $((BASE + index)) >&2
   fi
   index=$((index + 1))
 done

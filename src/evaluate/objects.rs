@@ -134,16 +134,19 @@ pub fn objects_report<'a>(
             .enumerate()
             .filter(|(hi, state)| {
                 taken.contains(hi)
-                    || !ignored.iter().any(|s| {
-                        planar(&ground(s.translation), &centre(state)) <= options.max_distance_m
-                    })
+                    || !ignored
+                        .iter()
+                        .any(|s| planar(&ground(s.translation), &centre(state)) <= options.max_distance_m)
             })
             .filter_map(|(_, state)| {
                 let id = state.track?;
                 if !track_ids.contains(&id) {
                     track_ids.push(id);
                 }
-                Some(Located { id, centre: centre(state) })
+                Some(Located {
+                    id,
+                    centre: centre(state),
+                })
             })
             .collect();
         frames.push(MotFrame {
@@ -204,9 +207,15 @@ fn returns(truth: &[TruthFrame], matches: &Matches) -> Returns {
                 continue;
             }
             // Away from frame f: where it comes back, if it does.
-            let Some(back) = (f..truth.len()).find(|&g| present(g)) else { break };
+            let Some(back) = (f..truth.len()).find(|&g| present(g)) else {
+                break;
+            };
             if let Some(before) = last_track {
-                let family = truth[back].subjects.iter().find(|s| s.id == id).map(|s| s.family.clone());
+                let family = truth[back]
+                    .subjects
+                    .iter()
+                    .find(|s| s.id == id)
+                    .map(|s| s.family.clone());
                 let same_family_near = truth[back]
                     .subjects
                     .iter()
@@ -233,7 +242,10 @@ fn returns(truth: &[TruthFrame], matches: &Matches) -> Returns {
 pub fn pooled(reports: &[&ObjectsReport]) -> ObjectsReport {
     let mut mot = MotCounts::default();
     let mut returns = Returns::default();
-    let heading_errors: Vec<f64> = reports.iter().flat_map(|r| r.heading_errors_rad.iter().copied()).collect();
+    let heading_errors: Vec<f64> = reports
+        .iter()
+        .flat_map(|r| r.heading_errors_rad.iter().copied())
+        .collect();
     for r in reports {
         let m = &r.mot;
         mot.frames += m.frames;

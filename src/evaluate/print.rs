@@ -150,7 +150,18 @@ pub fn print(report: &Report, summary: &RunSummary) {
         );
         println!(
             "  {:<22} {:>6} {:>7} {:>6} {:>6} {:>5} {:>5} {:>6} {:>5} {:>6} {:>12} {:>13}",
-            "recording", "frames", "objects", "MOTA", "IDF1", "IDsw", "frag", "misses", "FP", "tracks", "returns same", "yaw med/p90"
+            "recording",
+            "frames",
+            "objects",
+            "MOTA",
+            "IDF1",
+            "IDsw",
+            "frag",
+            "misses",
+            "FP",
+            "tracks",
+            "returns same",
+            "yaw med/p90"
         );
         let line = |name: &str, r: &super::objects::ObjectsReport| {
             let m = &r.mot;
@@ -169,7 +180,10 @@ pub fn print(report: &Report, summary: &RunSummary) {
                 r.tracks,
                 format!(
                     "{}/{}, {}/{}",
-                    returns.other_family_same_id, returns.other_family, returns.same_family_same_id, returns.same_family
+                    returns.other_family_same_id,
+                    returns.other_family,
+                    returns.same_family_same_id,
+                    returns.same_family
                 ),
                 format!(
                     "{}/{}",

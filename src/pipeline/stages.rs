@@ -211,7 +211,11 @@ pub(super) fn encode(
         for (ticket, frame) in batch {
             let objects: Vec<(Prepared, Encoding)> = frame.objects.into_iter().zip(encodings.by_ref()).collect();
             let done = if objects.iter().any(|(_, e)| !e.is_finite()) {
-                Done::Rejected(frame.origin.reject("encode", "the encoder's output is not finite".into()))
+                Done::Rejected(
+                    frame
+                        .origin
+                        .reject("encode", "the encoder's output is not finite".into()),
+                )
             } else {
                 let queue_ms = (start - frame.prepared_at).as_secs_f32() * 1000.0;
                 stats.record("queue", queue_ms);
@@ -381,7 +385,7 @@ fn several_objects(objects: &mut ObjectTracks, mut frame: EncodedFrame, node: &s
         .objects
         .iter()
         .map(|(prepared, encoding)| Candidate {
-            centre: prepared.centre_m,
+            centre: prepared.position_m,
             z_i: encoding.z_i_mean.clone(),
             points: prepared.points_kept,
         })

@@ -267,28 +267,16 @@ impl std::hash::Hasher for CellHasher {
 }
 
 /// Keeps the largest Euclidean cluster: points joined by chains of neighbours closer than
-/// `radius` (PCL's EuclideanClusterExtraction, one cluster). What a crop leaves of the floor's
-/// depth noise and of stray clutter is sparse and falls apart from the object. Returns how many
-/// points were removed.
-pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
-    if points.len() < 2 || !(radius > 0.0) {
+/// `radius` (PCL's EuclideanClusterExtraction, one cluster; `stretch`: see [`RangeStretch`]).
+/// What a crop leaves of the floor's depth noise and of stray clutter is sparse and falls apart
+/// from the object. Returns how many points were removed.
+pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32, stretch: Option<RangeStretch>) -> usize {
+    if points.len() < 2 {
         return 0;
     }
-    // A grid of cells whose diagonal is `radius`: the points of one cell are all within `radius`
-    // of each other, so each cell lies in one cluster, and clusters are found by joining cells
-    // (union-find) that hold a pair of points within `radius` of each other. The same clusters as
-    // a neighbour search from every point, at a fraction of its cost on dense surfaces.
-    let cell = radius / 3f32.sqrt();
-    // Cell coordinates must stay far inside i64 (so that neighbours and box sizes cannot overflow):
-    // a cloud reaching beyond 2^40 cells (10^10 m at a 1 cm radius) is left as it is. The node
-    // drops points beyond 1e5 m before prepare; this guards the function itself (found by
-    // `cargo fuzz run prepare`).
-    const LIMIT: f32 = (1u64 << 40) as f32;
-    if points.iter().flatten().any(|c| !((c / cell).abs() < LIMIT)) {
+    let Some((labels, count)) = cluster_labels(points, radius, stretch) else {
         return 0;
-    }
-    let cells: Vec<[i64; 3]> = points.iter().map(|p| p.map(|c| floor(c / cell))).collect();
-    let (labels, count) = components(points, &cells, radius * radius);
+    };
     // The largest cluster; of equal ones, the one holding the lowest point index.
     let mut size = vec![0usize; count];
     let mut first = vec![usize::MAX; count];
@@ -313,20 +301,17 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32) -> usize {
 pub fn euclidean_clusters(
     points: &[[f32; 3]],
     radius: f32,
+    stretch: Option<RangeStretch>,
     min_points: usize,
     max_extent_m: f32,
     max_clusters: usize,
 ) -> Vec<Vec<[f32; 3]>> {
-    if points.is_empty() || !(radius > 0.0) {
+    if points.is_empty() {
         return Vec::new();
     }
-    let cell = radius / 3f32.sqrt();
-    const LIMIT: f32 = (1u64 << 40) as f32;
-    if points.iter().flatten().any(|c| !((c / cell).abs() < LIMIT)) {
+    let Some((labels, count)) = cluster_labels(points, radius, stretch) else {
         return Vec::new();
-    }
-    let cells: Vec<[i64; 3]> = points.iter().map(|p| p.map(|c| floor(c / cell))).collect();
-    let (labels, count) = components(points, &cells, radius * radius);
+    };
     let mut clusters: Vec<Vec<[f32; 3]>> = vec![Vec::new(); count];
     for (p, &l) in points.iter().zip(&labels) {
         clusters[l as usize].push(*p);
@@ -347,6 +332,66 @@ pub fn euclidean_clusters(
         })
         .take(max_clusters)
         .collect()
+}
+
+/// A cluster radius that grows with range, as a stereo camera's depth noise does: clusters are
+/// found on the points with each one's range `r` from the sensor, beyond `from_m` (`r0`), taken
+/// down to `2 r0 - r0^2 / r` along its ray. That is affine in the disparity (1 / r), whose noise
+/// is the same at every range, and continuous with the range at `r0`; a chain of neighbours may
+/// then stretch `(r / r0)^2` times the radius along the ray (the noise grows as r^2: 2.7 times at
+/// 4.1 m beyond 2.5 m) and about `r / r0` across it (as the pixels' footprint does). Far objects
+/// whose depth noise breaks them into pieces at one radius stay whole; near ones are clustered as
+/// before.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RangeStretch {
+    /// The sensor's origin in the cloud's frame (m).
+    pub origin: [f32; 3],
+    /// Range (m) up to which the radius is the same everywhere.
+    pub from_m: f32,
+}
+
+impl RangeStretch {
+    /// Where `p` lies in the space clusters are found in.
+    fn warp(&self, p: [f32; 3]) -> [f32; 3] {
+        let v = [0, 1, 2].map(|a| p[a] - self.origin[a]);
+        let range = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        if !(range > self.from_m) {
+            return p;
+        }
+        let scale = (2.0 * self.from_m - self.from_m * self.from_m / range) / range;
+        [0, 1, 2].map(|a| self.origin[a] + scale * v[a])
+    }
+}
+
+/// Each point's cluster at `radius` (see [`components`]) and the number of clusters; none when
+/// the radius is not positive or the cloud reaches too far for the grid.
+fn cluster_labels(points: &[[f32; 3]], radius: f32, stretch: Option<RangeStretch>) -> Option<(Vec<u32>, usize)> {
+    if !(radius > 0.0) {
+        return None;
+    }
+    let warped: Vec<[f32; 3]>;
+    let points = match stretch {
+        Some(stretch) if stretch.from_m > 0.0 => {
+            warped = points.iter().map(|&p| stretch.warp(p)).collect();
+            &warped[..]
+        }
+        _ => points,
+    };
+    // A grid of cells whose diagonal is `radius`: the points of one cell are all within `radius`
+    // of each other, so each cell lies in one cluster, and clusters are found by joining cells
+    // (union-find) that hold a pair of points within `radius` of each other. The same clusters as
+    // a neighbour search from every point, at a fraction of its cost on dense surfaces.
+    let cell = radius / 3f32.sqrt();
+    // Cell coordinates must stay far inside i64 (so that neighbours and box sizes cannot overflow):
+    // a cloud reaching beyond 2^40 cells (10^10 m at a 1 cm radius) is left as it is. The node
+    // drops points beyond 1e5 m before prepare; this guards the function itself (found by
+    // `cargo fuzz run prepare`).
+    const LIMIT: f32 = (1u64 << 40) as f32;
+    if points.iter().flatten().any(|c| !((c / cell).abs() < LIMIT)) {
+        return None;
+    }
+    let cells: Vec<[i64; 3]> = points.iter().map(|p| p.map(|c| floor(c / cell))).collect();
+    Some(components(points, &cells, radius * radius))
 }
 
 /// Bits of a packed cell key per axis: differences below 2^41 cells fit, with room for the two

@@ -14,7 +14,7 @@ mod settings;
 
 pub use filters::{
     crop, euclidean_clusters, fit_ground, keep_largest_cluster, levelling, remove_outliers, remove_plane, transform,
-    transform_and_crop, voxel_grid, Plane,
+    transform_and_crop, voxel_grid, Plane, RangeStretch,
 };
 pub use sampling::{
     centre_and_scale, farthest_point_sampling, farthest_point_sampling_plain, random_sampling, subsample,
@@ -67,6 +67,11 @@ pub struct Prepared {
     pub points: Vec<[f32; 3]>,
     /// The centre that was subtracted (metres, gravity frame).
     pub centre_m: [f32; 3],
+    /// Where the object is, for telling objects apart frame to frame (metres, gravity frame):
+    /// with several objects ([`Preparer::prepare_all`]) the median of its points on each axis,
+    /// which a few stray points or a part hidden for a frame hardly move (the box's centre, which
+    /// `centre_m` is, can jump by a quarter metre); else `centre_m`.
+    pub position_m: [f32; 3],
     /// Points after filtering (before subsampling or padding).
     pub points_kept: usize,
     /// The input cloud decimated to at most [`Preparer::showing_input`]'s points (metres, gravity
@@ -157,9 +162,9 @@ impl Preparer {
     pub fn prepare_measured(&self, frame: &Frame, cpu: &mut [u64; STEPS.len()]) -> Result<Prepared, PrepareError> {
         let s = &self.settings;
         let mut clock = ThreadLap::start();
-        let (mut points, input, seed) = self.reduce(frame, cpu, &mut clock)?;
+        let (mut points, input, seed, stretch) = self.reduce(frame, cpu, &mut clock)?;
         if s.cluster_m > 0.0 {
-            keep_largest_cluster(&mut points, s.cluster_m);
+            keep_largest_cluster(&mut points, s.cluster_m, stretch);
         }
         cpu[Step::Cluster as usize] += clock.lap();
         let prepared = self.sample(&points, input, seed);
@@ -192,30 +197,34 @@ impl Preparer {
     ) -> Result<Vec<Prepared>, PrepareError> {
         let s = &self.settings;
         let mut clock = ThreadLap::start();
-        let (points, mut input, seed) = self.reduce(frame, cpu, &mut clock)?;
+        let (points, mut input, seed, stretch) = self.reduce(frame, cpu, &mut clock)?;
         if !(s.cluster_m > 0.0) {
             let prepared = self.sample(&points, input, seed);
             cpu[Step::Sample as usize] += clock.lap();
             return Ok(vec![prepared?]);
         }
-        let clusters = euclidean_clusters(&points, s.cluster_m, s.min_points, max_extent_m, max_objects);
+        let clusters = euclidean_clusters(&points, s.cluster_m, stretch, s.min_points, max_extent_m, max_objects);
         cpu[Step::Cluster as usize] += clock.lap();
         let prepared = clusters
             .into_iter()
-            .map(|cluster| self.sample(&cluster, input.take(), seed))
+            .map(|mut cluster| {
+                let mut prepared = self.sample(&cluster, input.take(), seed)?;
+                prepared.position_m = trimmed_centre(&mut cluster);
+                Ok(prepared)
+            })
             .collect();
         cpu[Step::Sample as usize] += clock.lap();
         prepared
     }
 
-    /// The steps before clustering: the points left, the decimated input copy and the frame's
-    /// seed.
+    /// The steps before clustering: the points left, the decimated input copy, the frame's seed
+    /// and the cluster radius's growth with range (from the sensor's origin in the points' frame).
     fn reduce(
         &self,
         frame: &Frame,
         cpu: &mut [u64; STEPS.len()],
         clock: &mut ThreadLap,
-    ) -> Result<(Vec<[f32; 3]>, Option<Vec<[f32; 3]>>, u64), PrepareError> {
+    ) -> Result<(Vec<[f32; 3]>, Option<Vec<[f32; 3]>>, u64, Option<RangeStretch>), PrepareError> {
         let s = &self.settings;
         let seed = s.seed ^ frame.sequence.wrapping_mul(0x9E37_79B9_7F4A_7C15);
         let to_metres = frame.unit.to_metres();
@@ -236,8 +245,9 @@ impl Preparer {
             transform_and_crop(&decimated, to_metres, rotation, translation, None)
         });
         cpu[Step::Transform as usize] += clock.lap();
+        let mut origin = *translation;
         if estimate_ground {
-            self.ground(&mut points, seed)?;
+            self.ground(&mut points, &mut origin, seed)?;
         }
         cpu[Step::Ground as usize] += clock.lap();
         if s.voxel_grid_m > 0.0 {
@@ -246,7 +256,11 @@ impl Preparer {
         cpu[Step::Reduce as usize] += clock.lap();
         remove_outliers(&mut points, &s.outliers);
         cpu[Step::Outliers as usize] += clock.lap();
-        Ok((points, input, seed))
+        let stretch = (s.cluster_stretch_from_m > 0.0).then(|| RangeStretch {
+            origin: origin.into(),
+            from_m: s.cluster_stretch_from_m,
+        });
+        Ok((points, input, seed, stretch))
     }
 
     /// N_p points of `points`, centred and scaled.
@@ -258,6 +272,7 @@ impl Preparer {
         Ok(Prepared {
             points: chosen,
             centre_m,
+            position_m: centre_m,
             points_kept,
             input,
         })
@@ -265,7 +280,8 @@ impl Preparer {
 
     /// The ground plane by RANSAC: levels the cloud on it (`auto_ground`), crops (after levelling)
     /// and removes the points on it (`remove_ground`).
-    fn ground(&self, points: &mut Vec<[f32; 3]>, seed: u64) -> Result<(), PrepareError> {
+    /// Finds the ground; with `auto_ground`, levels the cloud (and the sensor's `origin`) on it.
+    fn ground(&self, points: &mut Vec<[f32; 3]>, origin: &mut Vector3<f32>, seed: u64) -> Result<(), PrepareError> {
         let s = &self.settings;
         let plane = fit_ground(points, s.ground_tolerance_m, s.ransac_iterations, seed);
         if plane.is_none() && s.auto_ground {
@@ -275,6 +291,7 @@ impl Preparer {
             (Some(plane), true) => {
                 let (rotation, translation) = levelling(&plane);
                 transform(points, &rotation, &translation);
+                *origin = rotation * *origin + translation;
                 Some(Plane {
                     normal: Vector3::z(),
                     offset: 0.0,
@@ -291,4 +308,21 @@ impl Preparer {
         }
         Ok(())
     }
+}
+
+/// The centre of `points`' box with the lowest and highest `TRIM` of them left out on each axis
+/// (reorders them); the origin for none.
+fn trimmed_centre(points: &mut [[f32; 3]]) -> [f32; 3] {
+    const TRIM: f32 = 0.05;
+    if points.is_empty() {
+        return [0.0; 3];
+    }
+    let low = ((points.len() as f32 * TRIM) as usize).min(points.len() - 1);
+    let high = points.len() - 1 - low;
+    [0, 1, 2].map(|axis| {
+        let by_axis = |a: &[f32; 3], b: &[f32; 3]| a[axis].total_cmp(&b[axis]);
+        let lowest = points.select_nth_unstable_by(low, by_axis).1[axis];
+        let highest = points.select_nth_unstable_by(high, by_axis).1[axis];
+        0.5 * (lowest + highest)
+    })
 }

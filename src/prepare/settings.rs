@@ -28,6 +28,10 @@ pub struct PrepareSettings {
     /// Keep only the largest cluster of points joined by neighbours closer than this (metres):
     /// drops what the crop leaves of the floor's noise and stray clutter. 0 keeps every point.
     pub cluster_m: f32,
+    /// Beyond this range from the sensor (metres) the cluster radius grows with the range, as a
+    /// stereo camera's depth noise does (see `prepare::RangeStretch`), so that a far object stays
+    /// one cluster. 0: the same radius at every range.
+    pub cluster_stretch_from_m: f32,
     pub sampling: Sampling,
     /// Voxel edge (metres) for `sampling = "voxel"`.
     pub voxel_m: f32,
@@ -50,6 +54,7 @@ impl Default for PrepareSettings {
             voxel_grid_m: 0.0,
             outliers: OutlierSettings::default(),
             cluster_m: 0.0,
+            cluster_stretch_from_m: 0.0,
             sampling: Sampling::Farthest,
             voxel_m: 0.01,
             min_points: 64,
@@ -117,6 +122,12 @@ impl PrepareSettings {
         }
         if !(p.cluster_m >= 0.0 && p.cluster_m.is_finite()) {
             return Err(format!("prepare.cluster_m = {} must be >= 0 (0: off)", p.cluster_m));
+        }
+        if !(p.cluster_stretch_from_m >= 0.0 && p.cluster_stretch_from_m.is_finite()) {
+            return Err(format!(
+                "prepare.cluster_stretch_from_m = {} must be >= 0 (0: off)",
+                p.cluster_stretch_from_m
+            ));
         }
         let o = &p.outliers;
         if o.method != OutlierMethod::None && (o.neighbours == 0 || !(o.std_ratio > 0.0) || !(o.radius_m > 0.0)) {

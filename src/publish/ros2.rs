@@ -355,13 +355,19 @@ impl Ros2Sink {
                     if pending.0 != state.sequence {
                         // The rest of the previous frame's objects never came (a track failed).
                         let (_, stamp_ns, earlier) = std::mem::replace(pending, (state.sequence, stamp_ns, Vec::new()));
-                        let header = Header { stamp_ns, frame_id: &frame_id };
+                        let header = Header {
+                            stamp_ns,
+                            frame_id: &frame_id,
+                        };
                         detections.put(detection_array(&header, &earlier))?;
                     }
                     pending.2.push(detection);
                     if index + 1 == count {
                         let (_, stamp_ns, all) = topics.pending.take().expect("held above");
-                        let header = Header { stamp_ns, frame_id: &frame_id };
+                        let header = Header {
+                            stamp_ns,
+                            frame_id: &frame_id,
+                        };
                         detections.put(detection_array(&header, &all))?;
                     }
                 }

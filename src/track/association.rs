@@ -5,7 +5,8 @@
 //! Frame by frame, candidates (one per cluster that could be an object: its centre in the gravity
 //! frame and its z_I) are matched to tracks at the least total cost, found exactly (Hungarian
 //! method). A pair's cost adds how far the candidate lies from the track's predicted position
-//! (constant velocity), in `gate_m`s, and how far its z_I lies from the track's fused z_I, as a
+//! (constant velocity) on the ground plane, in `gate_m`s (a partly hidden object's centre moves up
+//! or down, its legs behind another, more than across), and how far its z_I lies from the track's fused z_I, as a
 //! fraction of `shape_scale`; a pair beyond the gate (`gate_m` widened by `max_speed_mps` for the
 //! time the track went unseen) cannot match. A cluster near two tracks with the points of both is
 //! the two merged (`merge_ratio`): they coast through it. A candidate no track takes starts a
@@ -30,7 +31,8 @@ pub struct AssociationSettings {
     pub max_objects: usize,
     /// A cluster larger than this (m) on any side is not a candidate (a wall, a table, the floor).
     pub max_extent_m: f32,
-    /// Farthest a candidate may lie from a track's predicted position (m) at no elapsed time ...
+    /// Farthest a candidate may lie from a track's predicted position (m, on the ground plane) at
+    /// no elapsed time ...
     pub gate_m: f32,
     /// ... plus this speed times the time since the track was last seen (m/s).
     pub max_speed_mps: f32,
@@ -38,6 +40,7 @@ pub struct AssociationSettings {
     pub shape_weight: f32,
     /// The z_I distance (Euclidean, model units) that costs as much as a whole gate.
     pub shape_scale: f32,
+
     /// Frames in a row a tentative track needs to be confirmed.
     pub birth_frames: usize,
     /// A confirmed track unseen this long (s) ends (shorter gaps are occlusions).
@@ -157,6 +160,8 @@ struct Track {
     z_i_count: usize,
     /// Running mean of its candidates' points.
     points_mean: f32,
+    /// Coasting last frame through a cluster merged with another track's object.
+    merging: bool,
 }
 
 impl Track {
@@ -170,6 +175,9 @@ impl Track {
         std::array::from_fn(|a| self.position[a] + self.velocity[a] * dt)
     }
 }
+
+/// A merged cluster stays merged while it has this many times the points of each of its tracks.
+const MERGE_HOLD_RATIO: f32 = 1.1;
 
 /// An ended track, kept for re-identification.
 #[derive(Debug, Clone)]
@@ -213,7 +221,8 @@ impl Associator {
     /// Associates one frame's candidates at `time` (s, increasing).
     pub fn update(&mut self, time: f64, candidates: &[Candidate]) -> Associated {
         let s = &self.settings;
-        let merged = self.merged(time, candidates);
+        let (merged, merging) = self.merged(time, candidates);
+        self.tracks.iter_mut().zip(merging).for_each(|(t, m)| t.merging = m);
         let cost: Vec<Vec<f64>> = self
             .tracks
             .iter()
@@ -225,7 +234,7 @@ impl Associator {
                     .iter()
                     .enumerate()
                     .map(|(k, c)| {
-                        let d = distance(&predicted, &c.centre);
+                        let d = ground_distance(&predicted, &c.centre);
                         if d > gate || merged[k] {
                             return NO_MATCH;
                         }
@@ -326,7 +335,7 @@ impl Associator {
         let fragment_m = self.settings.fragment_m as f64;
         for (c, candidate) in candidates.iter().enumerate() {
             // On the ground plane: a piece may lie above the body (a head, a raised arm).
-            let fragment = taken.iter().any(|p| distance(&p[..2], &candidate.centre[..2]) < fragment_m);
+            let fragment = taken.iter().any(|p| ground_distance(p, &candidate.centre) < fragment_m);
             if key_of[c].is_none() && !merged[c] && !fragment {
                 let key = self.next_key;
                 self.next_key += 1;
@@ -341,6 +350,7 @@ impl Associator {
                     z_i_sum: candidate.z_i.clone(),
                     z_i_count: 1,
                     points_mean: candidate.points as f32,
+                    merging: false,
                 });
                 if self.settings.birth_frames <= 1 {
                     let event = self.confirm(key, time);
@@ -355,32 +365,46 @@ impl Associator {
     }
 
     /// Per candidate, whether it is two confirmed tracks' objects merged into one cluster: within
-    /// both their gates, with `merge_ratio` times the points either has had.
-    fn merged(&self, time: f64, candidates: &[Candidate]) -> Vec<bool> {
+    /// both their gates, with `merge_ratio` times the points either has had (once merged, with
+    /// [`MERGE_HOLD_RATIO`] times: a cluster loses points as one object passes behind the other,
+    /// and taking it then moves the track that does by half the objects' spacing). Per track,
+    /// whether it coasts through such a cluster.
+    fn merged(&self, time: f64, candidates: &[Candidate]) -> (Vec<bool>, Vec<bool>) {
         let s = &self.settings;
-        candidates
+        let mut merging = vec![false; self.tracks.len()];
+        let merged = candidates
             .iter()
             .map(|c| {
                 if s.merge_ratio <= 0.0 || c.points == 0 {
                     return false;
                 }
-                let near: Vec<&Track> = self
-                    .tracks
-                    .iter()
-                    .filter(|t| t.id.is_some() && t.points_mean > 0.0)
-                    .filter(|t| {
+                let near: Vec<usize> = (0..self.tracks.len())
+                    .filter(|&t| {
+                        let t = &self.tracks[t];
                         let gate = s.gate_m as f64 + s.max_speed_mps as f64 * (time - t.last_seen).max(0.0);
                         // A merged cluster's centre lies between its objects: half their spacing
                         // from each, beyond one gate.
-                        distance(&t.predicted(time), &c.centre) <= gate + s.gate_m as f64
+                        t.id.is_some()
+                            && t.points_mean > 0.0
+                            && ground_distance(&t.predicted(time), &c.centre) <= gate + s.gate_m as f64
                     })
                     .collect();
-                near.len() >= 2
+                let ratio = if near.iter().all(|&t| self.tracks[t].merging) {
+                    MERGE_HOLD_RATIO.min(s.merge_ratio)
+                } else {
+                    s.merge_ratio
+                };
+                let is_merged = near.len() >= 2
                     && near
                         .iter()
-                        .all(|t| c.points as f32 >= s.merge_ratio * t.points_mean)
+                        .all(|&t| c.points as f32 >= ratio * self.tracks[t].points_mean);
+                if is_merged {
+                    near.iter().for_each(|&t| merging[t] = true);
+                }
+                is_merged
             })
-            .collect()
+            .collect();
+        (merged, merging)
     }
 
     /// Gives the track of `key` an id: an ended or unseen track's whose fused z_I is nearest
@@ -434,6 +458,11 @@ impl Associator {
             }
         }
     }
+}
+
+/// Distance between two positions on the ground plane (x, y of the gravity frame).
+fn ground_distance(a: &[f32; 3], b: &[f32; 3]) -> f64 {
+    distance(&a[..2], &b[..2])
 }
 
 fn distance(a: &[f32], b: &[f32]) -> f64 {

@@ -388,7 +388,16 @@ fn evaluate_tracks_both_subjects_of_the_two_subject_sample() {
     let evaluate = |set: &str, states: &Path| {
         let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
             .current_dir(repo())
-            .args(["evaluate", "--config", "config/objects.toml", "--out", "-", "--set", set, "--states"])
+            .args([
+                "evaluate",
+                "--config",
+                "config/objects.toml",
+                "--out",
+                "-",
+                "--set",
+                set,
+                "--states",
+            ])
             .arg(states)
             .arg(&sample)
             .output()
@@ -410,7 +419,10 @@ fn evaluate_tracks_both_subjects_of_the_two_subject_sample() {
     assert_eq!(objects["mot"]["false_positives"], 0, "{objects}");
     assert!(objects["mot"]["idf1"].as_f64().unwrap() > 0.9, "{objects}");
     assert_eq!(
-        (objects["returns"]["other_family"].as_u64(), objects["returns"]["other_family_same_id"].as_u64()),
+        (
+            objects["returns"]["other_family"].as_u64(),
+            objects["returns"]["other_family_same_id"].as_u64()
+        ),
         (Some(1), Some(1)),
         "the biped came back and got its id back: {objects}"
     );
@@ -420,10 +432,21 @@ fn evaluate_tracks_both_subjects_of_the_two_subject_sample() {
         let state = &line["state"];
         assert_eq!(state["schema"], "gdvae.state/2");
         let track = state["track"].as_u64().expect("every state names its track");
-        per_frame.entry(state["sequence"].as_u64().unwrap()).or_default().push(track);
+        per_frame
+            .entry(state["sequence"].as_u64().unwrap())
+            .or_default()
+            .push(track);
     }
-    assert!(per_frame.values().all(|t| t.len() <= 2 && (t.len() < 2 || t[0] != t[1])), "{per_frame:?}");
-    assert!(per_frame.values().filter(|t| t.len() == 2).count() >= 30, "both tracked most of the time");
+    assert!(
+        per_frame
+            .values()
+            .all(|t| t.len() <= 2 && (t.len() < 2 || t[0] != t[1])),
+        "{per_frame:?}"
+    );
+    assert!(
+        per_frame.values().filter(|t| t.len() == 2).count() >= 30,
+        "both tracked most of the time"
+    );
     let (single, lines) = evaluate("objects.enabled=false", &dir.path().join("one.jsonl"));
     assert!(single["recordings"][0]["objects"].is_null());
     assert!(lines.len() <= 60 && lines.iter().all(|l| l["state"]["track"].is_null()));

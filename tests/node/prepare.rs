@@ -5,7 +5,7 @@ use gdvae_node::cloud::{Frame, PointCloud, Unit};
 use gdvae_node::config::{OutlierMethod, OutlierSettings, PrepareSettings};
 use gdvae_node::prepare::{
     crop, euclidean_clusters, fit_ground, keep_largest_cluster, levelling, remove_outliers, remove_plane, transform,
-    transform_and_crop, voxel_grid, PrepareError, Preparer,
+    transform_and_crop, voxel_grid, PrepareError, Preparer, RangeStretch,
 };
 use nalgebra::{Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
@@ -343,7 +343,7 @@ fn the_largest_cluster_is_the_one_a_neighbour_search_finds() {
         }
         let radius = rng.random_range(0.02..0.15);
         let expected = largest_cluster_by_brute_force(&points, radius);
-        let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, radius);
+        let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, radius, None);
         assert_eq!(points, expected, "case {case}, radius {radius}");
         assert!(removed + points.len() > 0);
     }
@@ -357,12 +357,12 @@ fn the_largest_cluster_of_a_cloud_spanning_a_huge_box_is_found_without_overflow(
     let cell = 0.06f32 / 3f32.sqrt();
     let far_corner = (4_194_304.0 - 0.5) * cell;
     let mut points = vec![[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.02, 0.0, 0.0], [far_corner; 3]];
-    let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, 0.06);
+    let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, 0.06, None);
     assert_eq!(removed, 1);
     assert_eq!(points.len(), 3);
     // Coordinates beyond what a grid of cells can index: the cloud is left as it is.
     let mut far = vec![[0.0, 0.0, 0.0], [3e38, 0.0, 0.0]];
-    assert_eq!(gdvae_node::prepare::keep_largest_cluster(&mut far, 0.06), 0);
+    assert_eq!(gdvae_node::prepare::keep_largest_cluster(&mut far, 0.06, None), 0);
     assert_eq!(far.len(), 2);
 }
 
@@ -380,22 +380,22 @@ fn every_cluster_that_could_be_an_object_is_a_candidate_largest_first() {
     points.extend(blob(&mut rng, [1.5, 0.0, 0.4], 0.4, 1200));
     points.extend(blob(&mut rng, [-1.5, 0.0, 0.4], 0.1, 20)); // too few points
     points.extend((0..400).map(|i| [-1.0 + 0.01 * i as f32, 2.0, 0.5])); // a 4 m rail: too long
-    let clusters = euclidean_clusters(&points, 0.1, 50, 3.0, 8);
+    let clusters = euclidean_clusters(&points, 0.1, None, 50, 3.0, 8);
     assert_eq!(clusters.iter().map(Vec::len).collect::<Vec<_>>(), vec![1200, 800]);
     assert!(clusters[0].iter().all(|p| p[0] > 1.0) && clusters[1].iter().all(|p| p[0].abs() < 0.5));
     assert_eq!(
-        euclidean_clusters(&points, 0.1, 50, 3.0, 1).len(),
+        euclidean_clusters(&points, 0.1, None, 50, 3.0, 1).len(),
         1,
         "at most max_clusters"
     );
     assert_eq!(
-        euclidean_clusters(&points, 0.1, 10, 5.0, 8).len(),
+        euclidean_clusters(&points, 0.1, None, 10, 5.0, 8).len(),
         4,
         "the small blob and the rail pass looser limits"
     );
     // The largest cluster is the one keep_largest_cluster keeps.
     let mut largest = points.clone();
-    keep_largest_cluster(&mut largest, 0.1);
+    keep_largest_cluster(&mut largest, 0.1, None);
     assert_eq!(largest, clusters[0]);
 }
 
@@ -429,4 +429,86 @@ fn with_one_object_the_first_candidate_is_what_prepare_gives_and_with_two_each_i
             prepared.centre_m
         );
     }
+}
+
+/// A 0.6 m x 0.6 m patch facing a sensor at the origin, `range` metres away along +x, its depth
+/// quantised into layers `step` metres apart (as a stereo camera's disparity steps) and each point
+/// on a random layer within one step of the surface: 2 cm apart across the ray.
+fn layered_patch(rng: &mut ChaCha8Rng, range: f32, step: f32) -> Vec<[f32; 3]> {
+    let mut points = Vec::new();
+    for i in 0..30 {
+        for j in 0..30 {
+            let layer = rng.random_range(-1i32..=1) as f32;
+            let (y, z) = (-0.3 + 0.02 * i as f32, -0.3 + 0.02 * j as f32);
+            // Along the ray through (range, y, z).
+            let along = (range + layer * step) / range;
+            points.push([range * along, y * along, z * along]);
+        }
+    }
+    points
+}
+
+#[test]
+fn a_far_object_broken_by_depth_noise_stays_one_cluster_with_the_radius_grown_by_range() {
+    let mut rng = ChaCha8Rng::seed_from_u64(23);
+    let stretch = Some(RangeStretch {
+        origin: [0.0; 3],
+        from_m: 2.5,
+    });
+    // 4.5 m away, layers 8 cm apart (an OAK-D's disparity step there is about 7.6 cm).
+    let far = layered_patch(&mut rng, 4.5, 0.08);
+    let pieces = euclidean_clusters(&far, 0.06, None, 1, 3.0, 100);
+    assert!(
+        pieces.len() > 1 && pieces[0].len() < 700,
+        "one radius breaks it: {} pieces",
+        pieces.len()
+    );
+    let whole = euclidean_clusters(&far, 0.06, stretch, 1, 3.0, 100);
+    assert_eq!(whole.len(), 1, "grown with range, one object");
+    assert_eq!(whole[0].len(), far.len());
+    // Two such objects 0.8 m apart along the ray stay two.
+    let mut two = far.clone();
+    two.extend(layered_patch(&mut rng, 5.3, 0.08));
+    assert_eq!(euclidean_clusters(&two, 0.06, stretch, 100, 3.0, 100).len(), 2);
+    // Nearer than `from_m` nothing changes.
+    let near = layered_patch(&mut rng, 2.0, 0.08);
+    assert_eq!(
+        euclidean_clusters(&near, 0.06, stretch, 1, 3.0, 100),
+        euclidean_clusters(&near, 0.06, None, 1, 3.0, 100)
+    );
+    let mut kept = far.clone();
+    assert_eq!(
+        keep_largest_cluster(&mut kept, 0.06, stretch),
+        0,
+        "keep_largest_cluster grows it too"
+    );
+}
+
+#[test]
+fn an_objects_position_is_not_moved_by_a_few_stray_points_as_its_box_centre_is() {
+    let mut rng = ChaCha8Rng::seed_from_u64(24);
+    let settings = PrepareSettings {
+        cluster_m: 0.1,
+        min_points: 50,
+        ..PrepareSettings::default()
+    };
+    let preparer = Preparer::new(&settings, 128, 2.0);
+    // A 0.4 m body at x = 0 and a thin trail of 20 points reaching 0.6 m behind it (joined to it).
+    let mut points = blob(&mut rng, [0.0, 0.0, 0.5], 0.4, 900);
+    points.extend((0..20).map(|i| [-0.2 - 0.03 * i as f32, 0.0, 0.5]));
+    let all = preparer
+        .prepare_all(&frame_of("s", 1, Unit::Metre, points), 3.0, 4)
+        .unwrap();
+    assert_eq!(all.len(), 1);
+    assert!(
+        all[0].centre_m[0] < -0.2,
+        "the box's centre follows the trail: {:?}",
+        all[0].centre_m
+    );
+    assert!(
+        all[0].position_m[0].abs() < 0.05,
+        "the position does not: {:?}",
+        all[0].position_m
+    );
+    assert!((all[0].position_m[2] - 0.5).abs() < 0.05);
 }
