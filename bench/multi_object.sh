@@ -7,7 +7,7 @@
 # other seeds, for tuning; `tune2`: a second tuning set of the six scenarios); `cross`: eight 12 s
 # scenes in which the other subject walks back and forth across the view (`--others-motion cross`)
 # in front of the primary or behind it, so that their paths cross in the image twice a scene and
-# one hides the other (`cross-tune`: the same scenes from other seeds, for tuning). Then the
+# one hides the other (`cross-tune`, `cross-tune2`: the same scenes from other seeds, for tuning). Then the
 # candidate detection measured on the set
 # (bench/detection.rs), and the tracking: `gdvae-node evaluate` with config/objects.toml (MOTA,
 # IDF1, ID switches, returns that got their id back, per-track heading).
@@ -18,7 +18,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SET=${1:?usage: bench/multi_object.sh tune|tune2|holdout|final|returns|returns-tune|cross|cross-tune [OUT_DIR]}
+SET=${1:?usage: bench/multi_object.sh tune|tune2|holdout|final|returns|returns-tune|cross|cross-tune|cross-tune2 [OUT_DIR]}
 OUT=${2:-${BENCH_DIR:-/work/data/bench-multi}}
 DURATION=12
 case $SET in
@@ -29,8 +29,9 @@ case $SET in
   returns) BASE=900 DURATION=20 ;;
   returns-tune) BASE=950 DURATION=20 ;;
   cross-tune) BASE=1000 ;;
+  cross-tune2) BASE=1060 ;;
   cross) BASE=1100 ;;
-  *) echo "bench/multi_object.sh: unknown set '$SET' (tune, tune2, holdout, final, returns, returns-tune, cross or cross-tune)" >&2; exit 2 ;;
+  *) echo "bench/multi_object.sh: unknown set '$SET' (tune, tune2, holdout, final, returns, returns-tune, cross, cross-tune or cross-tune2)" >&2; exit 2 ;;
 esac
 SIM=./target/release/sim
 [[ -x $SIM ]] || { echo "bench/multi_object.sh: $SIM missing: run 'make sim' first" >&2; exit 2; }
@@ -58,7 +59,7 @@ if [[ $SET == returns || $SET == returns-tune ]]; then
     SCENARIOS+=("walk-bb$k|biped|biped|walk|3-7,1:11-15|")
   done
 fi
-if [[ $SET == cross || $SET == cross-tune ]]; then
+if [[ $SET == cross* ]]; then
   # Crossing paths: the other subject crosses the view 1 m in front of the primary's stage
   # (2.2 m from the camera) or 0.9 m behind it (4.1 m), there and back in 12 s; it stays.
   FRONT="cross 1.0:0" BEHIND="cross -0.9:0"
