@@ -14,7 +14,8 @@
 //! object), confirmed (given an id) after `birth_frames` frames in a row; a
 //! confirmed track unseen for `lost_s` (an occlusion) ends and joins a gallery of ended tracks
 //! kept `memory_s`. A track confirmed while an ended (or unseen) track's fused z_I lies within
-//! `reid_distance` of its own takes that id back: the same animal, returned.
+//! `reid_distance` of its own takes that id back: the same animal, returned (one that comes back
+//! into view a part at a time may wait `reid_wait_s` for its z_I to come within reach).
 //!
 //! The gallery is searched linearly: it holds the few tracks of one stream's last seconds, and
 //! z_I's size is the bundle's, known only at run time (kiddo's trees fix it at compile time).
@@ -49,6 +50,11 @@ pub struct AssociationSettings {
     pub memory_s: f64,
     /// Largest z_I distance between a new track and an ended one for it to take the old id.
     pub reid_distance: f32,
+    /// A new track whose z_I is not within `reid_distance` of an ended track's but within
+    /// [`REID_WAIT_REACH`] times it (an object coming back into view, seen in part at first)
+    /// waits up to this long (s) from its first frame for its fused z_I to come within reach
+    /// before it takes a new id (0: it never waits).
+    pub reid_wait_s: f64,
     /// A candidate near two confirmed tracks (within a gate more than either's: a merged cluster's
     /// centre lies between its objects) and with at least this many times the points either
     /// usually has is the two merged into one cluster (walking side by side, one behind the
@@ -74,6 +80,7 @@ impl Default for AssociationSettings {
             lost_s: 1.0,
             memory_s: 10.0,
             reid_distance: 1.0,
+            reid_wait_s: 0.5,
             merge_ratio: 1.4,
             fragment_m: 0.5,
         }
@@ -98,6 +105,7 @@ impl AssociationSettings {
             ("shape_weight", self.shape_weight as f64),
             ("memory_s", self.memory_s),
             ("reid_distance", self.reid_distance as f64),
+            ("reid_wait_s", self.reid_wait_s),
             ("merge_ratio", self.merge_ratio as f64),
             ("fragment_m", self.fragment_m as f64),
         ];
@@ -162,6 +170,8 @@ struct Track {
     points_mean: f32,
     /// Coasting last frame through a cluster merged with another track's object.
     merging: bool,
+    /// When it was first seen (s).
+    first_seen: f64,
 }
 
 impl Track {
@@ -175,6 +185,10 @@ impl Track {
         std::array::from_fn(|a| self.position[a] + self.velocity[a] * dt)
     }
 }
+
+/// How far (in `reid_distance`s) an ended track's z_I may lie from a new track's for the new one to
+/// wait for re-identification (`reid_wait_s`).
+pub const REID_WAIT_REACH: f64 = 1.5;
 
 /// A merged cluster stays merged while it has this many times the points of each of its tracks.
 const MERGE_HOLD_RATIO: f32 = 1.1;
@@ -300,8 +314,9 @@ impl Associator {
             .map(|t| t.key)
             .collect();
         for key in due {
-            let event = self.confirm(key, time);
-            result.events.push(event);
+            if let Some(event) = self.confirm(key, time) {
+                result.events.push(event);
+            }
         }
         // Ended: confirmed tracks unseen for lost_s.
         let (lost_s, mut ended) = (self.settings.lost_s, Vec::new());
@@ -351,10 +366,12 @@ impl Associator {
                     z_i_count: 1,
                     points_mean: candidate.points as f32,
                     merging: false,
+                    first_seen: time,
                 });
                 if self.settings.birth_frames <= 1 {
-                    let event = self.confirm(key, time);
-                    result.events.push(event);
+                    if let Some(event) = self.confirm(key, time) {
+                        result.events.push(event);
+                    }
                 }
             }
         }
@@ -409,7 +426,10 @@ impl Associator {
 
     /// Gives the track of `key` an id: an ended or unseen track's whose fused z_I is nearest
     /// within `reid_distance`, else a new one.
-    fn confirm(&mut self, key: u64, time: f64) -> TrackEvent {
+    /// Confirms a tentative track: the id of the ended (or unseen) track whose fused z_I is
+    /// nearest its own within `reid_distance`, else a new id; none yet while it waits for a z_I
+    /// that might come within reach (`reid_wait_s`).
+    fn confirm(&mut self, key: u64, time: f64) -> Option<TrackEvent> {
         let t = self
             .tracks
             .iter()
@@ -421,16 +441,29 @@ impl Associator {
             .gallery
             .iter()
             .enumerate()
-            .map(|(g, e)| (distance(&e.z_i, &z_i), e.last_seen, Some(g), None))
-            .filter(|(d, ..)| *d <= limit);
+            .map(|(g, e)| (distance(&e.z_i, &z_i), e.last_seen, Some(g), None));
         let unseen = self
             .tracks
             .iter()
             .enumerate()
             .filter(|(u, other)| *u != t && other.id.is_some() && other.last_seen < time)
-            .map(|(u, other)| (distance(&other.fused(), &z_i), other.last_seen, None, Some(u)))
-            .filter(|(d, ..)| *d <= limit);
-        let best = from_gallery.chain(unseen).min_by(|a, b| a.0.total_cmp(&b.0));
+            .map(|(u, other)| (distance(&other.fused(), &z_i), other.last_seen, None, Some(u)));
+        let nearest = from_gallery.chain(unseen).min_by(|a, b| a.0.total_cmp(&b.0));
+        let waiting = time - self.tracks[t].first_seen < self.settings.reid_wait_s;
+        if nearest.is_some_and(|(d, ..)| d > limit && d <= REID_WAIT_REACH * limit) && waiting {
+            return None;
+        }
+        Some(self.confirm_as(t, nearest.filter(|(d, ..)| *d <= limit), time))
+    }
+
+    /// Gives tentative track `t` the id of `best` (an ended track, by its gallery index, or an
+    /// unseen one, by its index) or else a new one.
+    fn confirm_as(
+        &mut self,
+        t: usize,
+        best: Option<(f64, f64, Option<usize>, Option<usize>)>,
+        time: f64,
+    ) -> TrackEvent {
         match best {
             Some((_, last_seen, Some(g), _)) => {
                 let ended = self.gallery.swap_remove(g);

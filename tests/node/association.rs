@@ -361,3 +361,36 @@ fn a_merged_cluster_that_loses_points_stays_merged_until_the_objects_part() {
     assert_eq!(frames[29].ids, frames[89].ids, "each object on its own track after");
     assert!(frames[29].ids.iter().all(Option::is_some));
 }
+
+/// An object coming back into view a part at a time: its first frames' z_I lie beyond
+/// `reid_distance` of its own (1.27 against 1.0) but within reach. It waits for its z_I to come
+/// within `reid_distance` and gets its old id; without the wait it is taken for a new object.
+#[test]
+fn an_object_coming_back_into_view_in_part_waits_for_its_shape_and_gets_its_id_back() {
+    let run_with = |reid_wait_s: f64| {
+        let mut associator = Associator::new(AssociationSettings {
+            reid_wait_s,
+            ..AssociationSettings::default()
+        });
+        let frames = run(&mut associator, 150, |f| {
+            let t = f as f64 / FPS;
+            let mut c = vec![candidate(0.0, -1.0, 0)];
+            if !(1.0..3.0).contains(&t) {
+                let mut returning = candidate(1.0, 1.0, 1);
+                if (3.0..3.2).contains(&t) {
+                    returning.z_i.iter_mut().for_each(|v| *v += 0.45);
+                }
+                c.push(returning);
+            }
+            c
+        });
+        frames.iter().flat_map(|f| f.events.clone()).collect::<Vec<_>>()
+    };
+    let waited = run_with(0.5);
+    assert!(
+        matches!(waited.last(), Some(TrackEvent::Reidentified { id: 2, .. })),
+        "{waited:?}"
+    );
+    let hasty = run_with(0.0);
+    assert_eq!(hasty.last(), Some(&TrackEvent::Born { id: 3 }), "{hasty:?}");
+}
