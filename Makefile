@@ -39,7 +39,7 @@ bench-tracking: onnxruntime node sim
 
 # The multi-object benchmark (docs/tracking.md "Several objects"): its recordings, the candidate
 # detection and the tracking (evaluate with config/objects.toml) on `tune`, `holdout`, `final`, the
-# re-identification set `returns` and the crossing-paths set `cross`. Recordings in
+# re-identification set `returns`, the crossing-paths set `cross` and `three` (three subjects). Recordings in
 # /work/data/bench-multi, or $BENCH_DIR.
 bench-multi: sim
 	bench/multi_object.sh tune
@@ -47,6 +47,7 @@ bench-multi: sim
 	bench/multi_object.sh final
 	bench/multi_object.sh returns
 	bench/multi_object.sh cross
+	bench/multi_object.sh three
 
 # The paper-structured evaluation set (models/README.md "Evaluation split"): 300 subjects per
 # family, one pose each, all in the test split, from a seed no training set uses.

@@ -7,7 +7,9 @@
 # other seeds, for tuning; `tune2`: a second tuning set of the six scenarios); `cross`: eight 12 s
 # scenes in which the other subject walks back and forth across the view (`--others-motion cross`)
 # in front of the primary or behind it, so that their paths cross in the image twice a scene and
-# one hides the other (`cross-tune`, `cross-tune2`: the same scenes from other seeds, for tuning). Then the
+# one hides the other (`cross-tune`, `cross-tune2`: the same scenes from other seeds, for tuning);
+# `three`: four 12 s scenes with three subjects (two walking beside the primary, or one crossing in
+# front of it and one behind; nothing is chosen on it). Then the
 # candidate detection measured on the set
 # (bench/detection.rs), and the tracking: `gdvae-node evaluate` with config/objects.toml (MOTA,
 # IDF1, ID switches, returns that got their id back, per-track heading).
@@ -18,7 +20,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SET=${1:?usage: bench/multi_object.sh tune|tune2|holdout|final|returns|returns-tune|cross|cross-tune|cross-tune2 [OUT_DIR]}
+SET=${1:?usage: bench/multi_object.sh tune|tune2|holdout|final|returns|returns-tune|cross|cross-tune|cross-tune2|three [OUT_DIR]}
 OUT=${2:-${BENCH_DIR:-/work/data/bench-multi}}
 DURATION=12
 case $SET in
@@ -31,7 +33,8 @@ case $SET in
   cross-tune) BASE=1000 ;;
   cross-tune2) BASE=1060 ;;
   cross) BASE=1100 ;;
-  *) echo "bench/multi_object.sh: unknown set '$SET' (tune, tune2, holdout, final, returns, returns-tune, cross, cross-tune or cross-tune2)" >&2; exit 2 ;;
+  three) BASE=1200 ;;
+  *) echo "bench/multi_object.sh: unknown set '$SET' (tune, tune2, holdout, final, returns, returns-tune, cross, cross-tune, cross-tune2 or three)" >&2; exit 2 ;;
 esac
 SIM=./target/release/sim
 [[ -x $SIM ]] || { echo "bench/multi_object.sh: $SIM missing: run 'make sim' first" >&2; exit 2; }
@@ -72,6 +75,14 @@ if [[ $SET == cross* ]]; then
     "behind-qb-idle|quadruped|biped|idle||$BEHIND"
     "front-qq|quadruped|quadruped|walk||$FRONT"
     "behind-bb|biped|biped|walk||$BEHIND"
+  )
+fi
+if [[ $SET == three ]]; then
+  SCENARIOS=(
+    "walk-qbq|quadruped|biped,quadruped|walk||"
+    "walk-bqb|biped|quadruped,biped|walk||"
+    "cross-qbq|quadruped|biped,quadruped|walk||cross 1.0:0,-0.9:0"
+    "cross-bqb|biped|quadruped,biped|walk||cross 1.0:0,-0.9:0"
   )
 fi
 mkdir -p "$OUT/$SET"
