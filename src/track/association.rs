@@ -11,8 +11,8 @@
 //! time the track went unseen) cannot match. A cluster near two tracks with the points of both is
 //! the two merged (`merge_ratio`): they coast through it. A candidate no track takes starts a
 //! tentative track (unless it lies within `fragment_m` of a track's candidate: a piece of that
-//! object), confirmed (given an id) after `birth_frames` frames in a row; a
-//! confirmed track unseen for `lost_s` (an occlusion) ends and joins a gallery of ended tracks
+//! object, which a track unseen in the last update does not take either), confirmed (given an
+//! id) after `birth_frames` frames in a row; a confirmed track unseen for `lost_s` (an occlusion) ends and joins a gallery of ended tracks
 //! kept `memory_s`. A track confirmed while an ended (or unseen) track's fused z_I lies within
 //! `reid_distance` of its own takes that id back: the same animal, returned (one that comes back
 //! into view a part at a time may wait `reid_wait_s` for its z_I to come within reach).
@@ -61,8 +61,9 @@ pub struct AssociationSettings {
     /// other): neither takes it, both coast on their motion until they part (0: off).
     pub merge_ratio: f32,
     /// A candidate no track takes within this distance (m, on the ground plane) of a confirmed
-    /// track's candidate of the same frame is a piece of that object split from it (an arm, a head past an occluder), not a
-    /// new one: it starts no track (0: every such candidate does).
+    /// track's candidate of the same frame is a piece of that object split from it (an arm, a
+    /// head past an occluder), not a new one: it starts no track, nor does a track unseen in the
+    /// last update take it (0: off).
     pub fragment_m: f32,
 }
 
@@ -170,6 +171,8 @@ struct Track {
     points_mean: f32,
     /// Coasting last frame through a cluster merged with another track's object.
     merging: bool,
+    /// Updates in a row it took no candidate in (0: seen in the last).
+    misses: u32,
     /// When it was first seen (s).
     first_seen: f64,
 }
@@ -263,7 +266,7 @@ impl Associator {
                     .collect()
             })
             .collect();
-        let pairs = assign(&cost);
+        let pairs = self.without_pieces(assign(&cost), candidates);
 
         let mut result = Associated {
             ids: vec![None; candidates.len()],
@@ -298,6 +301,9 @@ impl Associator {
             } else {
                 candidate.points as f32
             };
+        }
+        for (track, seen) in self.tracks.iter_mut().zip(&seen) {
+            track.misses = if *seen { 0 } else { track.misses.saturating_add(1) };
         }
         // Tentative tracks need frames in a row: one missed, they go.
         let mut index = 0;
@@ -366,6 +372,7 @@ impl Associator {
                     z_i_count: 1,
                     points_mean: candidate.points as f32,
                     merging: false,
+                    misses: 0,
                     first_seen: time,
                 });
                 if self.settings.birth_frames <= 1 {
@@ -379,6 +386,34 @@ impl Associator {
             *id = self.tracks.iter().find(|t| Some(t.key) == *key).and_then(|t| t.id);
         }
         result
+    }
+
+    /// `pairs` (track, candidate) less those in which a track that went unseen takes a piece of
+    /// an object another confirmed track, seen in the last update, takes in this one: a
+    /// candidate within `fragment_m` of that one's on the ground plane (legs split from a body;
+    /// the track coasting after its own object left would otherwise take them, and follow that
+    /// object from then on).
+    fn without_pieces(&self, pairs: Vec<(usize, usize)>, candidates: &[Candidate]) -> Vec<(usize, usize)> {
+        let fragment_m = self.settings.fragment_m as f64;
+        if fragment_m <= 0.0 {
+            return pairs;
+        }
+        let held: Vec<usize> = pairs
+            .iter()
+            .filter(|&&(t, _)| self.tracks[t].id.is_some() && self.tracks[t].misses == 0)
+            .map(|&(_, c)| c)
+            .collect();
+        pairs
+            .into_iter()
+            .filter(|&(t, c)| {
+                let track = &self.tracks[t];
+                track.misses == 0
+                    || track.id.is_none()
+                    || !held
+                        .iter()
+                        .any(|&h| h != c && ground_distance(&candidates[h].centre, &candidates[c].centre) < fragment_m)
+            })
+            .collect()
     }
 
     /// Per candidate, whether it is two confirmed tracks' objects merged into one cluster: within

@@ -394,3 +394,50 @@ fn an_object_coming_back_into_view_in_part_waits_for_its_shape_and_gets_its_id_b
     let hasty = run_with(0.0);
     assert_eq!(hasty.last(), Some(&TrackEvent::Born { id: 3 }), "{hasty:?}");
 }
+
+/// Object 1 leaves; while its track coasts (its gate widening), object 0's cluster splits into its
+/// body and its legs for a few frames. The coasting track does not take the legs (a piece of the
+/// object track 1 holds: taking it would move the track onto object 0); without `fragment_m` it
+/// does.
+#[test]
+fn a_coasting_track_does_not_take_a_piece_of_an_object_another_track_holds() {
+    let run_with = |fragment_m: f32| {
+        let mut associator = Associator::new(AssociationSettings {
+            fragment_m,
+            ..AssociationSettings::default()
+        });
+        let frames = run(&mut associator, 60, |f| {
+            let t = f as f64 / FPS;
+            let x = 0.3 * t as f32;
+            let body = |points: usize| Candidate {
+                centre: [x, 0.0, 0.8],
+                z_i: z_i(0),
+                points,
+            };
+            match t {
+                t if t < 1.0 => vec![body(1000), candidate(0.5, 0.8, 0)],
+                t if (1.5..1.6).contains(&t) => vec![
+                    body(700),
+                    Candidate {
+                        centre: [x + 0.1, 0.1, 0.4],
+                        z_i: z_i(0),
+                        points: 300,
+                    },
+                ],
+                _ => vec![body(1000)],
+            }
+        });
+        (
+            frames[45..48].iter().map(|f| f.ids.clone()).collect::<Vec<_>>(),
+            frames[59].ids.clone(),
+        )
+    };
+    let (split, end) = run_with(0.5);
+    assert!(split.iter().all(|ids| ids == &vec![Some(1), None]), "{split:?}");
+    assert_eq!(end, vec![Some(1)]);
+    let (split, _) = run_with(0.0);
+    assert!(
+        split.iter().any(|ids| ids.contains(&Some(2))),
+        "without the rule it takes the legs: {split:?}"
+    );
+}
