@@ -12,8 +12,8 @@
 //! the two merged (`merge_ratio`): they coast through it. A candidate no track takes starts a
 //! tentative track (unless it lies within `fragment_m` of a track's candidate: a piece of that
 //! object, which a track unseen in the last update does not take either), confirmed (given an
-//! id) after `birth_frames` frames in a row; a confirmed track unseen for `lost_s` (an occlusion) ends and joins a gallery of ended tracks
-//! kept `memory_s`. A track confirmed while an ended (or unseen) track's fused z_I lies within
+//! id) after `birth_frames` frames in a row; a confirmed track unseen for `lost_s` (an
+//! occlusion) ends and joins a gallery of ended tracks kept `memory_s`. A track confirmed while an ended (or unseen) track's fused z_I lies within
 //! `reid_distance` of its own takes that id back: the same animal, returned (one that comes back
 //! into view a part at a time may wait `reid_wait_s` for its z_I to come within reach).
 //!
