@@ -13,9 +13,10 @@
 //! tentative track (unless it lies within `fragment_m` of a track's candidate: a piece of that
 //! object, which a track unseen in the last update does not take either), confirmed (given an
 //! id) after `birth_frames` frames in a row; a confirmed track unseen for `lost_s` (an
-//! occlusion) ends and joins a gallery of ended tracks kept `memory_s`. A track confirmed while an ended (or unseen) track's fused z_I lies within
-//! `reid_distance` of its own takes that id back: the same animal, returned (one that comes back
-//! into view a part at a time may wait `reid_wait_s` for its z_I to come within reach).
+//! occlusion) ends and joins a gallery of ended tracks kept `memory_s`. A track confirmed while
+//! an ended (or unseen) track's fused z_I lies within `reid_distance` of its own takes that id
+//! back: the same animal, returned (one that comes back into view a part at a time may wait
+//! `reid_wait_s` for its z_I to come within reach).
 //!
 //! The gallery is searched linearly: it holds the few tracks of one stream's last seconds, and
 //! z_I's size is the bundle's, known only at run time (kiddo's trees fix it at compile time).
