@@ -68,9 +68,9 @@ pub struct Prepared {
     /// The centre that was subtracted (metres, gravity frame).
     pub centre_m: [f32; 3],
     /// Where the object is, for telling objects apart frame to frame (metres, gravity frame):
-    /// with several objects ([`Preparer::prepare_all`]) the median of its points on each axis,
-    /// which a few stray points or a part hidden for a frame hardly move (the box's centre, which
-    /// `centre_m` is, can jump by a quarter metre); else `centre_m`.
+    /// with several objects ([`Preparer::prepare_all`]) the centre of its points' box with the
+    /// outer 5 % on each axis left out, which a few stray points hardly move (the whole box's
+    /// centre, which `centre_m` is, can jump by a quarter metre); else `centre_m`.
     pub position_m: [f32; 3],
     /// Points after filtering (before subsampling or padding).
     pub points_kept: usize,
@@ -278,9 +278,8 @@ impl Preparer {
         })
     }
 
-    /// The ground plane by RANSAC: levels the cloud on it (`auto_ground`), crops (after levelling)
-    /// and removes the points on it (`remove_ground`).
-    /// Finds the ground; with `auto_ground`, levels the cloud (and the sensor's `origin`) on it.
+    /// The ground plane by RANSAC: levels the cloud (and the sensor's `origin`) on it
+    /// (`auto_ground`), crops (after levelling) and removes the points on it (`remove_ground`).
     fn ground(&self, points: &mut Vec<[f32; 3]>, origin: &mut Vector3<f32>, seed: u64) -> Result<(), PrepareError> {
         let s = &self.settings;
         let plane = fit_ground(points, s.ground_tolerance_m, s.ransac_iterations, seed);
