@@ -394,29 +394,75 @@ fn cluster_labels(points: &[[f32; 3]], radius: f32, stretch: Option<RangeStretch
     Some(components(points, &cells, radius * radius))
 }
 
-/// Bits of a packed cell key per axis: differences below 2^41 cells fit, with room for the two
-/// cells either side.
-const FIELD: u32 = 42;
+/// A cell's coordinates (each from the cloud's lowest cell, plus 2) packed into one number, x
+/// first, `FIELD` bits an axis: sorted keys are in grid order, and a neighbour's key is the
+/// cell's key plus the offset's. `u64` (21 bits an axis: the clouds prepare sees, up to two
+/// million cells a side) sorts and compares faster than `u128` (42 bits: any cloud the grid
+/// takes).
+trait CellKey: Copy + Ord {
+    const FIELD: u32;
+    fn pack(relative: [i64; 3]) -> Self;
+    /// The key `d` cells away (every axis stays inside its field).
+    fn shifted(self, d: [i64; 3]) -> Self;
+    fn z(self) -> i64;
+}
+
+impl CellKey for u64 {
+    const FIELD: u32 = 21;
+    fn pack(k: [i64; 3]) -> Self {
+        (k[0] as u64) << (2 * Self::FIELD) | (k[1] as u64) << Self::FIELD | k[2] as u64
+    }
+    fn shifted(self, d: [i64; 3]) -> Self {
+        (self as i64 + (d[0] << (2 * Self::FIELD)) + (d[1] << Self::FIELD) + d[2]) as u64
+    }
+    fn z(self) -> i64 {
+        (self & ((1 << Self::FIELD) - 1)) as i64
+    }
+}
+
+impl CellKey for u128 {
+    const FIELD: u32 = 42;
+    fn pack(k: [i64; 3]) -> Self {
+        (k[0] as u128) << (2 * Self::FIELD) | (k[1] as u128) << Self::FIELD | k[2] as u128
+    }
+    fn shifted(self, d: [i64; 3]) -> Self {
+        let offset = ((d[0] as i128) << (2 * Self::FIELD)) + ((d[1] as i128) << Self::FIELD) + d[2] as i128;
+        (self as i128 + offset) as u128
+    }
+    fn z(self) -> i64 {
+        (self & ((1 << Self::FIELD) - 1)) as i64
+    }
+}
 
 /// Each point's cluster (numbered 0.. in the order of each cluster's lowest point index) and the
 /// number of clusters, given each point's cell.
 fn components(points: &[[f32; 3]], cells: &[[i64; 3]], radius_squared: f32) -> (Vec<u32>, usize) {
     // Every cell's coordinates from the lowest corner (plus 2, so that a neighbour two cells lower
-    // is >= 0) packed into one number, FIELD bits an axis, x first: sorted keys are in grid order,
-    // and a neighbour's key is the cell's key plus the offset's.
+    // is >= 0), with room for a neighbour two cells higher.
     let low = cells
         .iter()
         .fold([i64::MAX; 3], |m, k| [0, 1, 2].map(|a| m[a].min(k[a] - 2)));
-    let pack = |k: &[i64; 3]| -> u128 {
-        ((k[0] - low[0]) as u128) << (2 * FIELD) | ((k[1] - low[1]) as u128) << FIELD | (k[2] - low[2]) as u128
-    };
-    let offset = |d: [i64; 3]| -> i128 { ((d[0] as i128) << (2 * FIELD)) + ((d[1] as i128) << FIELD) + d[2] as i128 };
-    let shifted = |key: u128, d: i128| (key as i128 + d) as u128;
-    let z = |key: u128| (key & ((1 << FIELD) - 1)) as i64;
+    let span = cells
+        .iter()
+        .fold(0, |m, k| [0, 1, 2].iter().fold(m, |m, &a| m.max(k[a] - low[a] + 2)));
+    if span < 1 << <u64 as CellKey>::FIELD {
+        components_keyed::<u64>(points, cells, low, radius_squared)
+    } else {
+        components_keyed::<u128>(points, cells, low, radius_squared)
+    }
+}
+
+fn components_keyed<K: CellKey>(
+    points: &[[f32; 3]],
+    cells: &[[i64; 3]],
+    low: [i64; 3],
+    radius_squared: f32,
+) -> (Vec<u32>, usize) {
+    let pack = |k: &[i64; 3]| K::pack([0, 1, 2].map(|a| k[a] - low[a]));
     // The points sorted by cell: cell a holds order[start[a]..start[a + 1]], in cloud order.
-    let mut order: Vec<(u128, u32)> = cells.iter().enumerate().map(|(i, k)| (pack(k), i as u32)).collect();
+    let mut order: Vec<(K, u32)> = cells.iter().enumerate().map(|(i, k)| (pack(k), i as u32)).collect();
     order.sort_unstable();
-    let mut keys: Vec<u128> = Vec::new();
+    let mut keys: Vec<K> = Vec::new();
     let mut start: Vec<usize> = Vec::new();
     for (at, (key, _)) in order.iter().enumerate() {
         if keys.last() != Some(key) {
@@ -468,17 +514,16 @@ fn components(points: &[[f32; 3]], cells: &[[i64; 3]], radius_squared: f32) -> (
             (-reach, reach)
         };
         let walked = reach == 2 && dx.abs() <= 1 && dy.abs() <= 1;
-        let (first_offset, last_offset) = (offset([dx, dy, below]), offset([dx, dy, above]));
         let mut b = 0;
         for a in 0..keys.len() {
-            let (first, last) = (shifted(keys[a], first_offset), shifted(keys[a], last_offset));
+            let (first, last) = (keys[a].shifted([dx, dy, below]), keys[a].shifted([dx, dy, above]));
             let mut ra = usize::MAX;
             while b < keys.len() && keys[b] < first {
                 b += 1;
             }
             let mut c = b;
             while c < keys.len() && keys[c] <= last {
-                if !walked || (z(keys[c]) - z(keys[a])).abs() == 2 {
+                if !walked || (keys[c].z() - keys[a].z()).abs() == 2 {
                     if ra == usize::MAX {
                         ra = root(&mut parent, a);
                     }

@@ -366,6 +366,22 @@ fn the_largest_cluster_of_a_cloud_spanning_a_huge_box_is_found_without_overflow(
     assert_eq!(far.len(), 2);
 }
 
+/// Cells are keyed in 64 bits when the cloud spans under 2^21 of them a side, else in 128: a point
+/// far enough away to need the wide keys leaves the other clusters as the narrow keys found them.
+#[test]
+fn clusters_are_the_same_with_narrow_and_wide_cell_keys() {
+    let mut rng = ChaCha8Rng::seed_from_u64(25);
+    let mut points = blob(&mut rng, [0.0, 0.0, 0.4], 0.5, 600);
+    points.extend(blob(&mut rng, [0.8, 0.3, 0.4], 0.3, 300));
+    points.extend(blob(&mut rng, [0.45, 0.1, 0.4], 0.05, 40));
+    let narrow = euclidean_clusters(&points, 0.06, None, 2, 3.0, 100);
+    let far = (4_194_304.0 - 0.5) * 0.06f32 / 3f32.sqrt();
+    points.push([far, far, far]);
+    let wide = euclidean_clusters(&points, 0.06, None, 2, 3.0, 100);
+    assert!(narrow.len() >= 2, "{} clusters", narrow.len());
+    assert_eq!(narrow, wide);
+}
+
 /// A blob of `n` points in a box of side `size` centred at `centre`.
 fn blob(rng: &mut ChaCha8Rng, centre: [f32; 3], size: f32, n: usize) -> Vec<[f32; 3]> {
     (0..n)
