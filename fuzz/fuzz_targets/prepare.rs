@@ -1,7 +1,8 @@
 //! Arbitrary clouds, finite or not, through what every frame goes through: the outlet's
 //! plausibility filter, then the prepare stage (transform, crop, ground, voxel grid, outliers,
 //! largest cluster, sampling to N_p) with the filters switched on by the first byte (the voxel grid
-//! by the length: on when 6 or more bytes are left over after the points). Farthest point
+//! by the length: on when 6 or more bytes are left over after the points; the cluster radius grown
+//! with range, and every candidate object prepared too, when an odd number is). Farthest point
 //! sampling is also checked against its plain loop: the bucketed one must choose the same points.
 #![no_main]
 
@@ -40,6 +41,8 @@ fuzz_target!(|data: &[u8]| {
     };
     settings.cluster_m = if switches & 16 != 0 { 0.05 } else { 0.0 };
     settings.voxel_grid_m = if body.len() % 12 >= 6 { 0.02 } else { 0.0 };
+    let several = body.len() % 2 == 1;
+    settings.cluster_stretch_from_m = if several { 0.5 } else { 0.0 };
     settings.sampling = match (switches >> 5) & 3 {
         0 => Sampling::Farthest,
         1 => Sampling::Random,
@@ -63,5 +66,11 @@ fuzz_target!(|data: &[u8]| {
     if let Ok(prepared) = preparer.prepare(&frame) {
         assert_eq!(prepared.points.len(), 64);
         assert!(prepared.points.iter().flatten().all(|c| c.is_finite()), "prepared points are finite");
+    }
+    if several {
+        for prepared in preparer.prepare_all(&frame, 2.5, 4).unwrap_or_default() {
+            assert_eq!(prepared.points.len(), 64);
+            assert!(prepared.position_m.iter().all(|c| c.is_finite()), "positions are finite");
+        }
     }
 });
