@@ -184,6 +184,12 @@ impl Track {
         self.z_i_sum.iter().map(|v| v / n).collect()
     }
 
+    /// How far from its prediction a candidate may lie at `time` (m): `gate_m`, widened by
+    /// `max_speed_mps` for the time it went unseen.
+    fn gate(&self, s: &AssociationSettings, time: f64) -> f64 {
+        s.gate_m as f64 + s.max_speed_mps as f64 * (time - self.last_seen).max(0.0)
+    }
+
     fn predicted(&self, time: f64) -> [f32; 3] {
         let dt = (time - self.last_seen) as f32;
         std::array::from_fn(|a| self.position[a] + self.velocity[a] * dt)
@@ -246,7 +252,7 @@ impl Associator {
             .iter()
             .map(|track| {
                 let predicted = track.predicted(time);
-                let gate = s.gate_m as f64 + s.max_speed_mps as f64 * (time - track.last_seen).max(0.0);
+                let gate = track.gate(s, time);
                 let fused = (track.z_i_count > 0).then(|| track.fused());
                 candidates
                     .iter()
@@ -434,7 +440,7 @@ impl Associator {
                 let near: Vec<usize> = (0..self.tracks.len())
                     .filter(|&t| {
                         let t = &self.tracks[t];
-                        let gate = s.gate_m as f64 + s.max_speed_mps as f64 * (time - t.last_seen).max(0.0);
+                        let gate = t.gate(s, time);
                         // A merged cluster's centre lies between its objects: half their spacing
                         // from each, beyond one gate.
                         t.id.is_some()
