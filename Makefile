@@ -56,10 +56,13 @@ eval-split: sim
 	./target/release/sim dataset --out $(EVAL_DIR) --subjects 300 --poses 1 --split 0,0,1 --seed 9000
 
 # What the GPU recipe's device job (models/device/run.sh) carries: .device/wheels (what the device's
-# Python lacks) and .device/spectra (the spectra of DEVICE_DATA, the dataset the job regenerates
-# there from the same seed). Then: run with carry [".device", "target/release/sim"] and the command
-# `bash models/device/run.sh` (models/README.md, "Training on a lent GPU").
+# Python lacks), .device/spectra (the spectra of DEVICE_DATA, the dataset the job regenerates
+# there from the same seed) and .device/init (DEVICE_INIT, the bundle whose autoencoder it
+# continues: the best so far, the H200's, when ../shared has it). Then: run with carry
+# [".device", "target/release/sim"] and the command `bash models/device/run.sh`
+# (models/README.md, "Training on a lent GPU").
 DEVICE_DATA ?= /work/data/sim-cpu2
+DEVICE_INIT ?= ../shared/bundles/h200-ae46k-fo
 device-job: venv sim
 	test -d $(DEVICE_DATA) || ./target/release/sim dataset --out $(DEVICE_DATA) --subjects 60 --poses 20 --seed 1
 	$(PYTHON) -m gdvae spectra $(DEVICE_DATA) --count 22 >/dev/null
@@ -67,6 +70,9 @@ device-job: venv sim
 	cp $(DEVICE_DATA)/.spectra/*.npy .device/spectra/
 	$(PYTHON) -m pip download --quiet --no-deps --only-binary=:all: --python-version 3.12 \
 		--implementation cp --platform manylinux2014_x86_64 -d .device/wheels trimesh==5.2.0
+	rm -rf .device/init
+	if test -f $(DEVICE_INIT)/manifest.json; then mkdir -p .device/init && \
+		cp $(DEVICE_INIT)/manifest.json $(DEVICE_INIT)/*.onnx .device/init/; fi
 	du -sh .device
 
 # Overload soak (docs/faults.md): a live feed at SOAK_FACTOR times the node's

@@ -7,21 +7,28 @@
 # 16 MiB): the bundle (5 files), train.log, log.jsonl and run.json (recipe and stages.json).
 # Run there from the repository root, carrying `.device` and `target/release/sim`:
 #     bash models/device/run.sh
-# The same script runs on a CPU at smoke size (`DEVICE=cpu RECIPE=smoke ...`): that is its test.
+# It first runs itself at smoke size on the same device (a few subjects, seconds per stage), so
+# that a bug on the accelerator's path costs a minute of the lease, not all of it. The same script
+# runs on a CPU at smoke size (`DEVICE=cpu RECIPE=smoke ...`): that is its test.
 set -euo pipefail
 
 OUT=${OUT:?set OUT to the folder whose files come back}
 DEVICE=${DEVICE:-cuda}
 RECIPE=${RECIPE:-gpu}
-AE_MINUTES=${AE_MINUTES:-4.5}      # the stage budgets; with the machine's start, data and export
-VAE_MINUTES=${VAE_MINUTES:-1}      # about 8 of the 15 lent minutes and inside one 10-minute command
+AE_MINUTES=${AE_MINUTES:-5.5}      # the stage budgets: 7 minutes of training, and with the smoke
+VAE_MINUTES=${VAE_MINUTES:-1.5}    # step, data and export inside one 10-minute command
 SUBJECTS=${SUBJECTS:-60}           # the shipped bundles' dataset: sim dataset --subjects 60 --poses 20 --seed 1
 POSES=${POSES:-20}
 SEED=${SEED:-1}
-INIT=${INIT-models/bundles/cpu-fo} # a bundle whose autoencoder is trained on (import-bundle); empty: a fresh AE
+# The bundle whose autoencoder is trained on (import-bundle): what `make device-job` put in
+# .device/init (the best so far), else the shipped one; empty: a fresh AE.
+DEFAULT_INIT=models/bundles/cpu-fo
+[ -f .device/init/manifest.json ] && DEFAULT_INIT=.device/init
+INIT=${INIT-$DEFAULT_INIT}
 REGIME=${REGIME:-fo}
 LEARNING_RATE=${LEARNING_RATE:-3e-4}
-WORKERS=${WORKERS:-$(( $(nproc) > 3 ? $(nproc) - 2 : 1 ))}
+WORKERS=${WORKERS:-0}              # loader processes, CPU only: on a GPU the batches are made on it
+SMOKE_FIRST=${SMOKE_FIRST:-1}      # 0: skip the smoke step (the smoke step itself runs with 0)
 PYTHON=${PYTHON:-python3}
 SIM=${SIM:-target/release/sim}
 WORK=${WORK:-/tmp/gdvae-device}
@@ -36,6 +43,18 @@ fi
 export PYTHONPATH="$PWD/models${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 "$PYTHON" -c "import torch, trimesh; print('torch', torch.__version__, 'device', '$DEVICE',
     torch.cuda.get_device_name() if '$DEVICE'.startswith('cuda') else '')"
+
+if [ "$SMOKE_FIRST" = 1 ]; then
+    say "smoke step: this job at smoke size on $DEVICE (log: $WORK/smoke.log)"
+    if ! OUT="$WORK/smoke-out" WORK="$WORK/smoke" SMOKE_FIRST=0 SUBJECTS=5 POSES=2 AE_MINUTES=0.05 \
+            VAE_MINUTES=0.05 bash "$0" >"$WORK/smoke.log" 2>&1; then
+        cp "$WORK/smoke.log" "$OUT/smoke.log"
+        tail -n 40 "$WORK/smoke.log"
+        say "the smoke step failed: nothing trained (its log is in \$OUT/smoke.log)"
+        exit 1
+    fi
+    say "smoke step passed"
+fi
 
 say "dataset: $SUBJECTS subjects x $POSES poses per family, seed $SEED"
 "$SIM" dataset --out "$WORK/data" --subjects "$SUBJECTS" --poses "$POSES" --seed "$SEED" >/dev/null

@@ -18,12 +18,13 @@ consistency loss across the rotated copies trains E_r instead.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
 from .geometry import chamfer_and_hausdorff, geodesic_distance, quaternion_to_matrix, random_rotation_matrices, rotate
+from .loss_parts import LossParts
 from .nets import PointNet, mlp
 
 
@@ -141,7 +142,7 @@ class Autoencoder(nn.Module):
 @dataclass
 class AELosses:
     total: torch.Tensor
-    parts: dict[str, float] = field(default_factory=dict)
+    parts: LossParts
 
 
 def reconstruction_distance(config: AEConfig, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -181,7 +182,6 @@ def ae_loss(model: Autoencoder, canonical_points: torch.Tensor, generator=None,
         raise ValueError(f"views has {views.shape[0]} clouds for {copies} copies of {batch} shapes")
     else:
         inputs = rotate(views, rotations)
-    parts: dict[str, float] = {}
 
     q = model.encode_rotation(inputs)
     predicted = quaternion_to_matrix(q)
@@ -190,9 +190,9 @@ def ae_loss(model: Autoencoder, canonical_points: torch.Tensor, generator=None,
     else:
         relative = rotations.transpose(-1, -2) @ predicted
         rotation_loss = config.gamma_rotation * pairwise_mean(relative, copies, lambda a, b: geodesic_distance(a, b).mean())
-    parts["rotation"] = float(rotation_loss.detach())
+    parts: dict[str, torch.Tensor] = {"rotation": rotation_loss}
     if rotation_only:
-        return AELosses(rotation_loss, parts), None
+        return AELosses(rotation_loss, LossParts(parts)), None
 
     used = rotations if config.supervised else predicted
     x_c, pose_aware_code = model.encode_shape(inputs, used, generator)
@@ -201,20 +201,20 @@ def ae_loss(model: Autoencoder, canonical_points: torch.Tensor, generator=None,
         reconstruction = config.gamma_reconstruction * reconstruction_distance(config, targets, canonical)
     else:
         reconstruction = config.gamma_reconstruction * reconstruction_distance(config, inputs, rotate(canonical, used))
-    parts["reconstruction"] = float(reconstruction.detach())
+    parts["reconstruction"] = reconstruction
     total = rotation_loss + reconstruction
     if pose_aware_code is not None:
         pose_aware = config.gamma_pose_aware * reconstruction_distance(config, observed, model.decode(pose_aware_code))
-        parts["pose_aware"] = float(pose_aware.detach())
+        parts["pose_aware"] = pose_aware
         total = total + pose_aware
     consistency = config.gamma_consistency * pairwise_mean(x_c, copies, lambda a, b: (a - b).pow(2).sum(-1).mean())
     radius = config.gamma_radius * x_c.pow(2).sum(-1).mean()
     weights = config.gamma_weights * sum(p.pow(2).sum() for name, p in model.named_parameters() if p.dim() > 1)
-    parts.update(consistency=float(consistency.detach()), radius=float(radius.detach()), weight_decay=float(weights.detach()))
+    parts.update(consistency=consistency, radius=radius, weight_decay=weights)
     total = total + consistency + radius + weights
-    parts["total"] = float(total.detach())
+    parts["total"] = total
     output = AEOutput(q=q, rotation=used, x_c=x_c, canonical=canonical, reconstruction=rotate(canonical, used))
-    return AELosses(total, parts), output
+    return AELosses(total, LossParts(parts)), output
 
 
 @torch.no_grad()

@@ -262,6 +262,7 @@ def export_command(args) -> int:
 
 def bench_command(args) -> int:
     import json
+    import time
 
     import torch
 
@@ -275,9 +276,12 @@ def bench_command(args) -> int:
     for assignment in args.set or []:
         apply_setting(chosen, assignment)
     device = torch.device(training_device(args.device))
+    started = time.perf_counter()
     dataset = load_dataset(args.dataset, limit=args.limit)
+    load_seconds = time.perf_counter() - started
     use_model_units(dataset, chosen.model_units)
     figures = bench(dataset, chosen, device, seconds=args.seconds)
+    figures["dataset"] = {"meshes": len(dataset.meshes), "load_seconds": load_seconds}
     figures["command"] = "python -m gdvae " + " ".join(args.argv)
     print(json.dumps(figures, indent=2) if args.json else report(figures) + f"\n  command: {figures['command']}")
     return 0

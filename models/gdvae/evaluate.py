@@ -13,7 +13,7 @@ from .data import DepthCamera, MeshDataset
 from .geometry import chamfer, quaternion_to_matrix, random_rotation_matrices, rotate
 from .metrics import (clustering_consistency, coverage_and_fidelity, disentanglement, heading_errors,
                       variance_calibration)
-from .train import PointSampler
+from .surface import PointSampler
 
 log = logging.getLogger(__name__)
 

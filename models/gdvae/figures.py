@@ -19,7 +19,7 @@ import torch
 from .data import MeshDataset
 from .evaluate import encode_all
 from .geometry import random_rotation_matrices
-from .train import PointSampler
+from .surface import PointSampler
 
 
 def _draw(ax, cloud: np.ndarray, title: str = "") -> None:

@@ -54,13 +54,16 @@ class ActNorm(nn.Module):
         self.bias = nn.Parameter(torch.zeros(features))
         self.log_scale = nn.Parameter(torch.zeros(features))
         self.register_buffer("initialized", torch.tensor(False))
+        self.known_initialized = False  # read once from the buffer: reading it waits for the device
 
     def forward(self, x):
-        if not bool(self.initialized) and self.training:
-            with torch.no_grad():
-                self.bias.copy_(-x.mean(0))
-                self.log_scale.copy_(-torch.log(x.std(0).clamp_min(1e-6)))
-                self.initialized.fill_(True)
+        if self.training and not self.known_initialized:
+            if not bool(self.initialized):
+                with torch.no_grad():
+                    self.bias.copy_(-x.mean(0))
+                    self.log_scale.copy_(-torch.log(x.std(0).clamp_min(1e-6)))
+                    self.initialized.fill_(True)
+            self.known_initialized = True
         return (x + self.bias) * torch.exp(self.log_scale), self.log_scale.sum().expand(x.shape[:-1])
 
     def inverse(self, y):

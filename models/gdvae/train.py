@@ -20,6 +20,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -27,9 +28,10 @@ import numpy as np
 import torch
 
 from .ae import AEConfig, Autoencoder, ae_loss, restore_batch_norms
-from .data import DepthCamera, MeshDataset, normalize, random_view_directions, sample_surface
+from .data import DepthCamera, MeshDataset
 from .geometry import matrix_to_quaternion, quaternion_to_matrix, random_rotation_matrices, rotate
 from .paired import PairedBatches, Pairing
+from .surface import PointSampler
 from .vae import LatentVAE, VAEConfig, vae_loss
 
 log = logging.getLogger(__name__)
@@ -198,49 +200,6 @@ def dataset_summary(dataset: MeshDataset) -> dict:
     }
 
 
-class PointSampler:
-    """Area-weighted surface samples of dataset meshes in model units (dataset scale, centred).
-    `camera`: partial views are what this depth camera sees; None: the faces turned towards it."""
-
-    def __init__(self, dataset: MeshDataset, indices: list[int], points: int, seed: int,
-                 camera: DepthCamera | None = None):
-        self.meshes = [normalize(dataset.meshes[i], dataset.scale) for i in indices]
-        self.scale, self.camera = dataset.scale, camera
-        self.surfaces: dict[int, np.ndarray] = {}  # per mesh, the dense sample the camera views
-        self.points = points
-        self.rng = np.random.default_rng(seed)
-
-    def batch(self, size: int) -> tuple[np.ndarray, torch.Tensor]:
-        chosen = self.rng.integers(0, len(self.meshes), size=size)
-        clouds = np.stack([sample_surface(self.meshes[i], self.points, self.rng) for i in chosen])
-        return chosen, torch.from_numpy(clouds)
-
-    def views(self, chosen: np.ndarray, copies: int, partial: float) -> torch.Tensor:
-        """Per copy of each chosen mesh (copy-major, as `ae_loss` lays copies out): with probability
-        `partial` the side a camera sees from a random direction, else the whole surface."""
-        clouds = []
-        for _ in range(copies):
-            directions = random_view_directions(len(chosen), self.rng)
-            for index, direction in zip(chosen, directions):
-                mesh = self.meshes[index]
-                if self.rng.random() >= partial:
-                    clouds.append(sample_surface(mesh, self.points, self.rng))
-                elif self.camera is None:
-                    clouds.append(sample_surface(mesh, self.points, self.rng, direction))
-                else:
-                    if index not in self.surfaces:
-                        self.surfaces[index] = sample_surface(mesh, self.camera.dense, self.rng)
-                    clouds.append(self.camera.view(self.surfaces[index], self.points, self.rng, direction, self.scale))
-        return torch.from_numpy(np.stack(clouds))
-
-    def clouds(self, index: int, count: int) -> torch.Tensor:
-        return torch.from_numpy(np.stack([sample_surface(self.meshes[index], self.points, self.rng) for _ in range(count)]))
-
-    def one_each(self) -> torch.Tensor:
-        """[meshes, points, 3]: one fresh sample of every mesh, in order."""
-        return torch.stack([self.clouds(i, 1)[0] for i in range(len(self.meshes))])
-
-
 @dataclass
 class Progress:
     """Logs a line (and a JSON record) at most every `seconds`, with rate and ETA."""
@@ -253,7 +212,9 @@ class Progress:
     first_iteration: int = 0
     last: float = 0.0
 
-    def update(self, iteration: int, parts: dict[str, float], force: bool = False) -> None:
+    def update(self, iteration: int, parts: Callable[[], dict[str, float]], force: bool = False) -> None:
+        """`parts`: called for the figures only when a line is logged (reading a loss waits for
+        the device)."""
         now = time.monotonic()
         if not force and now - self.last < self.seconds:
             return
@@ -261,6 +222,7 @@ class Progress:
         done = iteration - self.first_iteration
         rate = done / max(now - self.started, 1e-9)
         eta = (self.total - iteration) / rate if rate > 0 else float("inf")
+        parts = parts()
         shown = " ".join(f"{k}={v:.4g}" for k, v in parts.items())
         log.info("%s %d/%d (%.2f it/s, ETA %s) %s", self.stage, iteration, self.total, rate, _duration(eta), shown)
         with open(self.log_file, "a") as f:
@@ -282,11 +244,12 @@ class Plateau:
         self.values: list[float] = []
         self.best, self.bad = float("inf"), 0
 
-    def step(self, loss: float) -> None:
+    def step(self, loss: float | torch.Tensor) -> None:
+        """`loss`: a float or a detached tensor (summed on its device; read once per window)."""
         self.values.append(loss)
         if len(self.values) < self.window:
             return
-        mean = float(np.mean(self.values))
+        mean = float(sum(self.values)) / len(self.values)
         self.values.clear()
         if mean < self.best * 0.999:
             self.best, self.bad = mean, 0
@@ -298,7 +261,7 @@ class Plateau:
                 group["lr"] = max(self.minimum, group["lr"] * 0.95)
 
     def state_dict(self):
-        return {"best": self.best, "bad": self.bad, "values": list(self.values)}
+        return {"best": self.best, "bad": self.bad, "values": [float(v) for v in self.values]}
 
     def load_state_dict(self, state):
         self.best, self.bad, self.values = state["best"], state["bad"], list(state["values"])
@@ -314,14 +277,18 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     so that two VAE regimes can be compared on exactly the same autoencoder. `rebuild_bank`: reuse
     only its AE and encode a new bank with this recipe's bank settings. `continue_ae`: train the
     source's AE that many more iterations first (an undertrained AE; the bank is then rebuilt).
-    `device`: where the networks train; `limits`: per-stage wall-clock budgets; `loader_workers`:
-    processes that sample AE batches ahead of the training step (0: in this process, as before).
+    `device`: where the networks train and their batches are made; `limits`: per-stage wall-clock
+    budgets; `loader_workers`: processes that make AE batches ahead of the training step on a CPU
+    (0: in the training process, on its device).
     """
     limits = limits or StageLimits()
     limits.validate()
     device = torch.device(device)
     if loader_workers < 0:
         raise ValueError(f"loader workers {loader_workers}: must be >= 0")
+    if loader_workers > 0 and device.type != "cpu":
+        raise ValueError(f"loader workers ({loader_workers}) make batches on the CPU; on {device} the batches "
+                         "are made on the device by the training process: leave --loader-workers out")
     if chosen.partial_views > 0 and not chosen.ae.supervised:
         raise ValueError("partial views need the supervised AE (its target is the whole canonical cloud)")
     run_dir = Path(run_dir)
@@ -374,11 +341,14 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if "ae" in state:
         ae.load_state_dict(state["ae"])
     stages = StageRecord(run_dir / "stages.json", str(device))
+    started = time.monotonic()
     sampler = PointSampler(dataset, train_indices, chosen.ae.points, chosen.seed + state["iteration"],
-                           DepthCamera() if chosen.depth_camera_views else None)
+                           DepthCamera() if chosen.depth_camera_views else None, device)
+    log.info("%d training meshes on %s for sampling (%.0f MB, %.1f s)", len(sampler), device,
+             sampler.cache.bytes() / 1e6, time.monotonic() - started)
     if imported and state["stage"] == "ae":
         chosen_meshes, _ = sampler.batch(64)
-        restore_batch_norms(ae, sampler.views(chosen_meshes, 3, chosen.partial_views))
+        restore_batch_norms(ae, sampler.views(chosen_meshes, 3, chosen.partial_views).cpu())
         log.info("batch norms of the imported AE set to the statistics of %d training clouds", 3 * 64)
 
     def save(extra: dict) -> None:
@@ -450,7 +420,7 @@ class AEBatches(torch.utils.data.IterableDataset):
     def __iter__(self):
         worker = torch.utils.data.get_worker_info()
         if worker is not None:
-            self.sampler.rng = np.random.default_rng([self.seed, worker.id])
+            self.sampler.reseed(self.seed * 1000 + worker.id)
         while True:
             indices, clouds = self.sampler.batch(self.batch)
             views = self.sampler.views(indices, self.copies, self.partial) if self.partial > 0 else None
@@ -468,8 +438,14 @@ def ae_batches(sampler: PointSampler, chosen: Recipe, copies: int, start: int, w
     return iter(loader)
 
 
+def fused_adam(device) -> bool:
+    """Adam's fused kernel on a GPU: one launch for all parameters, where the default updates
+    them in a few launches per parameter group (the VAE has 162 parameter tensors)."""
+    return torch.device(device or "cpu").type == "cuda"
+
+
 def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir, device, budget_seconds, workers, stages) -> None:
-    optimizer = torch.optim.Adam(ae.parameters(), lr=chosen.ae_learning_rate)
+    optimizer = torch.optim.Adam(ae.parameters(), lr=chosen.ae_learning_rate, fused=fused_adam(device))
     schedule = Plateau(optimizer, chosen.ae_min_learning_rate)
     if "optimizer" in state:
         optimizer.load_state_dict(state["optimizer"])
@@ -496,8 +472,9 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir, device, budget_s
         losses.total.backward()
         optimizer.step()
         if iteration >= pretrain:
-            schedule.step(losses.parts["total"])
-        progress.update(iteration + 1, {**losses.parts, "lr": optimizer.param_groups[0]["lr"]}, force=iteration + 1 == total)
+            schedule.step(losses.parts.tensor("total"))
+        progress.update(iteration + 1, lambda: {**losses.parts, "lr": optimizer.param_groups[0]["lr"]},
+                        force=iteration + 1 == total)
         if time.monotonic() - last_save > chosen.checkpoint_seconds and iteration + 1 < total:
             save({"stage": "ae", "iteration": iteration + 1, "optimizer": optimizer.state_dict(),
                   "schedule": schedule.state_dict()})
@@ -522,12 +499,11 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, 
     partial = chosen.bank_view_share()
     if not 0.0 <= partial <= 1.0:
         raise ValueError(f"bank_partial_views {partial}: must be within 0..1")
-    qs, codes, spectrum = [], [], []
-    for index in range(len(sampler.meshes)):
-        clouds = sampler.views(np.full(chosen.bank_copies, index), 1, partial)
-        rotations = random_rotation_matrices(len(clouds), full=chosen.ae.full_rotations)
-        inputs = rotate(clouds, rotations).to(device)
-        rotations = rotations.to(device)
+    qs, codes = [], []
+    for meshes in torch.arange(len(sampler)).split(BANK_CHUNK):
+        clouds = sampler.views(meshes.repeat_interleave(chosen.bank_copies), 1, partial).to(device)
+        rotations = random_rotation_matrices(len(clouds), full=chosen.ae.full_rotations, device=device)
+        inputs = rotate(clouds, rotations)
         if chosen.bank_true_rotation and ae.config.supervised:
             q, used = matrix_to_quaternion(rotations), rotations
         else:
@@ -536,20 +512,23 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, 
         x_c, _ = ae.encode_shape(inputs, used)
         qs.append(q.cpu())
         codes.append(x_c.cpu())
-        spectrum.append(torch.from_numpy(np.repeat(spectra[index][None], len(clouds), 0)).float())
-    log.info("bank: %d training meshes x %d rotations encoded (%.0f%% partial views)", len(sampler.meshes),
+    spectrum = torch.from_numpy(np.repeat(spectra, chosen.bank_copies, 0)).float()
+    log.info("bank: %d training meshes x %d rotations encoded (%.0f%% partial views)", len(sampler),
              chosen.bank_copies, 100 * partial)
-    bank = {"q": torch.cat(qs), "x_c": torch.cat(codes), "spectrum": torch.cat(spectrum), "copies": chosen.bank_copies}
+    bank = {"q": torch.cat(qs), "x_c": torch.cat(codes), "spectrum": spectrum, "copies": chosen.bank_copies}
     if pairing is not None:
-        identity = torch.eye(3, device=device).expand(TARGET_SAMPLES, 3, 3)
-        bank["target"] = torch.stack([
-            ae.encode_shape(sampler.clouds(index, TARGET_SAMPLES).to(device), identity)[0].mean(0).cpu()
-            for index in range(len(sampler.meshes))])
+        targets = []
+        for meshes in torch.arange(len(sampler)).split(BANK_CHUNK):
+            clouds = sampler.clouds(meshes.repeat_interleave(TARGET_SAMPLES)).to(device)
+            x_c, _ = ae.encode_shape(clouds, torch.eye(3, device=device).expand(len(clouds), 3, 3))
+            targets.append(x_c.view(len(meshes), TARGET_SAMPLES, -1).mean(1).cpu())
+        bank["target"] = torch.cat(targets)
         bank["pairing"] = pairing
-        log.info("bank: target codes of %d meshes for the paired terms", len(sampler.meshes))
+        log.info("bank: target codes of %d meshes for the paired terms", len(sampler))
     return bank
 
 
+BANK_CHUNK = 64  # meshes encoded together (their copies in one batch)
 TARGET_SAMPLES = 4  # whole-surface samples averaged into a mesh's target code (paired regime)
 
 
@@ -581,7 +560,8 @@ def bank_batch(size: int, batch: int, copies: int, paired: bool, generator: torc
 
 def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, device=None, budget_seconds=None,
               stages=None) -> None:
-    optimizer = torch.optim.Adam(vae.parameters(), lr=chosen.vae_learning_rate, weight_decay=chosen.vae_weight_decay)
+    optimizer = torch.optim.Adam(vae.parameters(), lr=chosen.vae_learning_rate, weight_decay=chosen.vae_weight_decay,
+                                 fused=fused_adam(device))
     schedule = Plateau(optimizer, chosen.vae_min_learning_rate)
     if "optimizer" in state:
         optimizer.load_state_dict(state["optimizer"])
@@ -620,8 +600,9 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
         losses.total.backward()
         torch.nn.utils.clip_grad_norm_(vae.parameters(), 100.0)
         optimizer.step()
-        schedule.step(losses.parts["total"])
-        progress.update(iteration + 1, {**losses.parts, "lr": optimizer.param_groups[0]["lr"]}, force=iteration + 1 == total)
+        schedule.step(losses.parts.tensor("total"))
+        progress.update(iteration + 1, lambda: {**losses.parts, "lr": optimizer.param_groups[0]["lr"]},
+                        force=iteration + 1 == total)
         if time.monotonic() - last_save > chosen.checkpoint_seconds and iteration + 1 < total:
             save({"stage": "vae", "iteration": iteration + 1, "vae": vae.state_dict(),
                   "optimizer": optimizer.state_dict(), "schedule": schedule.state_dict()})

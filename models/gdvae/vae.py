@@ -17,7 +17,7 @@ ground truth, swap reconstruction and identity contrast (paired.py), on batches 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -25,6 +25,7 @@ from torch import nn
 from .flow import SpectralFlow
 from .geometry import normalize_quaternion, quaternion_distance
 from .hfvae import hfvae_terms
+from .loss_parts import LossParts
 from .nets import mlp
 from .paired import identity_contrast, swap_error
 from .spectrum import spectral_distance_torch
@@ -249,7 +250,7 @@ def jacobian_penalty(model: LatentVAE, mu_e: torch.Tensor, mu_i: torch.Tensor) -
 @dataclass
 class VAELosses:
     total: torch.Tensor
-    parts: dict[str, float] = field(default_factory=dict)
+    parts: LossParts
 
 
 def view_consistency(mu_i: torch.Tensor) -> torch.Tensor:
@@ -337,4 +338,4 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
         "spectrum_error": spectrum_error, "variance_nll": variance, "view_consistency": views, "covariance": covariance, "jacobian": jacobian,
         "swap": swap, "identity_contrast": contrast, "pose_contrast": pose_contrast,
     }
-    return VAELosses(total, {k: float(v.detach()) for k, v in parts.items()})
+    return VAELosses(total, LossParts(parts))

@@ -83,26 +83,34 @@ def test_a_folder_without_usable_meshes_is_a_clear_error(tmp_path):
         load_dataset(tmp_path)
 
 
-def test_the_depth_camera_sees_only_the_nearest_surface_and_adds_depth_noise():
-    from gdvae.data import DepthCamera
+def test_the_sims_binary_ply_is_read_directly_and_other_layouts_by_trimesh(tmp_path):
+    from gdvae.data import read_mesh, read_simple_ply
 
-    def ball(centre, radius):
-        s = trimesh.creation.icosphere(subdivisions=4, radius=radius)
-        return np.asarray(s.vertices, float) + centre, np.asarray(s.faces)
-
-    # A small ball hidden behind a large one, seen from 3 m along +x (model units = metres).
-    (va, fa), (vb, fb) = ball([0.5, 0, 0], 0.3), ball([-0.5, 0, 0], 0.1)
-    mesh = Mesh(np.vstack([va, vb]), np.vstack([fa, fb + len(va)]))
-    towards = np.array([1.0, 0.0, 0.0])
-    rng = np.random.default_rng(0)
-    exact = DepthCamera(disparity_sigma=0.0, distance_m=(3.0, 3.0), dense=20000)
-    seen = exact.view(sample_surface(mesh, exact.dense, rng), 400, rng, towards, scale=1.0)
-    assert seen.shape == (400, 3) and seen.dtype == np.float32
-    assert seen[:, 0].min() > 0.45  # the near half of the large ball only
-    # Back-face culling alone (the kit's other partial views) keeps the hidden ball's front.
-    assert sample_surface(mesh, 2000, rng, facing=towards)[:, 0].min() < -0.4
-    radial = lambda p: np.linalg.norm(p - [0.5, 0, 0], axis=1) - 0.3
-    assert np.abs(radial(seen)).max() < 0.01
-    noisy = DepthCamera(distance_m=(3.0, 3.0)).view(sample_surface(mesh, 20000, rng), 400, rng, towards, scale=1.0)
-    # sigma = z^2 * 0.1 / (441.25 * 0.075), about 0.02 m at 2.6 m.
-    assert 0.01 < radial(noisy).std() < 0.03
+    shape = trimesh.creation.icosphere(subdivisions=2)
+    vertices = np.asarray(shape.vertices, np.float32)
+    faces = np.asarray(shape.faces, np.int32)
+    # The sim's layout (sim/src/ply.rs): float x y z, uchar-counted int triangles.
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment gdvae-sim test\nelement vertex {len(vertices)}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n").encode()
+    records = np.zeros(len(faces), np.dtype([("n", "u1"), ("corners", "<i4", 3)]))
+    records["n"], records["corners"] = 3, faces
+    path = tmp_path / "sim.ply"
+    path.write_bytes(header + vertices.astype("<f4").tobytes() + records.tobytes())
+    direct = read_simple_ply(path)
+    assert direct is not None
+    np.testing.assert_array_equal(direct.vertices, vertices.astype(np.float64))
+    np.testing.assert_array_equal(direct.faces, faces)
+    parsed = trimesh.load(path, force="mesh", process=False)
+    np.testing.assert_array_equal(direct.vertices, np.asarray(parsed.vertices, np.float64))
+    # A quad among the triangles, an ASCII file and a truncated file are not the simple layout;
+    # read_mesh hands them to trimesh (which reads the ASCII one and rejects the truncated one).
+    quad = records.copy()
+    quad["n"][0] = 4
+    (tmp_path / "quad.ply").write_bytes(header + vertices.astype("<f4").tobytes() + quad.tobytes())
+    assert read_simple_ply(tmp_path / "quad.ply") is None
+    shape.export(tmp_path / "ascii.ply", encoding="ascii")
+    assert read_simple_ply(tmp_path / "ascii.ply") is None
+    assert len(read_mesh(tmp_path / "ascii.ply").faces) == len(faces)
+    (tmp_path / "short.ply").write_bytes(path.read_bytes()[:-5])
+    assert read_simple_ply(tmp_path / "short.ply") is None

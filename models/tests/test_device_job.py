@@ -1,6 +1,7 @@
 """The GPU recipe's device job (models/device/run.sh) run end to end on this CPU at smoke size:
-the same script, dataset generation, training with loader workers and stage budgets, export and
-the files that come back, so that a lent accelerator's minutes are not spent finding its bugs."""
+the same script, its smoke step, dataset generation, training with stage budgets (and loader
+workers, which only a CPU uses), export and the files that come back, so that a lent
+accelerator's minutes are not spent finding its bugs."""
 
 import json
 import os
@@ -17,14 +18,11 @@ SIM = ROOT / "target" / "release" / "sim"
 @pytest.mark.parametrize("init", ["", "models/bundles/cpu-fo"], ids=["fresh", "continued"])
 def test_the_device_job_runs_at_smoke_size_and_returns_at_most_eight_files(tmp_path, init):
     out = tmp_path / "out"
-    environment = {
-        **os.environ, "OUT": str(out), "DEVICE": "cpu", "RECIPE": "smoke", "SUBJECTS": "5", "POSES": "2",
-        "AE_MINUTES": "0.05", "VAE_MINUTES": "0.02", "WORKERS": "1", "INIT": init,
-        "PYTHON": str(ROOT / ".venv" / "bin" / "python"), "WORK": str(tmp_path / "work"), "SIM": str(SIM),
-    }
-    done = subprocess.run(["bash", "models/device/run.sh"], cwd=ROOT, env=environment, capture_output=True,
-                          text=True, timeout=900)
+    # The continued job runs its smoke step first, as on a device; the fresh one skips it.
+    done = subprocess.run(["bash", "models/device/run.sh"], cwd=ROOT, env=job_environment(tmp_path, init, {
+        "SMOKE_FIRST": "1" if init else "0"}), capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    assert ("smoke step passed" in done.stdout) == bool(init)
     files = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
     assert len(files) <= 8, files  # the device tool returns at most 8 files
     assert {"bundle/manifest.json", "bundle/encoder.onnx", "train.log", "run.json"} <= set(files)
@@ -35,3 +33,24 @@ def test_the_device_job_runs_at_smoke_size_and_returns_at_most_eight_files(tmp_p
     if init:  # the shipped AE, continued: its sizes, trained on until the budget ended it
         assert manifest["sizes"]["points"] == 256 and record["stages"]["ae"]["ended_by_time_budget"]
     assert max(p.stat().st_size for p in out.rglob("*") if p.is_file()) < 16 * 2**20
+
+
+def job_environment(tmp_path, init: str, extra: dict) -> dict:
+    return {
+        **os.environ, "OUT": str(tmp_path / "out"), "DEVICE": "cpu", "RECIPE": "smoke", "SUBJECTS": "5",
+        "POSES": "2", "AE_MINUTES": "0.05", "VAE_MINUTES": "0.02", "WORKERS": "1", "INIT": init,
+        "PYTHON": str(ROOT / ".venv" / "bin" / "python"), "WORK": str(tmp_path / "work"), "SIM": str(SIM), **extra,
+    }
+
+
+@pytest.mark.skipif(not SIM.exists(), reason="needs the sim binary (make binaries)")
+def test_a_failing_smoke_step_stops_the_job_before_it_trains_and_returns_its_log(tmp_path):
+    done = subprocess.run(["bash", "models/device/run.sh"], cwd=ROOT,
+                          env=job_environment(tmp_path, "models/bundles/no-such-bundle", {}),
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0
+    assert "the smoke step failed" in done.stdout
+    assert not (tmp_path / "work" / "data").exists()  # the job's own dataset was never made
+    out = tmp_path / "out"
+    assert "no-such-bundle" in (out / "smoke.log").read_text()
+    assert not (out / "bundle").exists()
