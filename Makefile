@@ -61,12 +61,12 @@ eval-split: sim
 # continues: the best so far, the H200's, when ../shared has it). Then: run with carry
 # [".device", "target/release/sim"] and the command `bash models/device/run.sh`
 # (models/README.md, "Training on a lent GPU").
-DEVICE_DATA ?= /work/data/sim-cpu2
+DEVICE_DATA ?= /work/data/sim-device
 DEVICE_INIT ?= ../shared/bundles/h200-ae46k-fo
 device-job: venv sim
-	test -d $(DEVICE_DATA) || ./target/release/sim dataset --out $(DEVICE_DATA) --subjects 60 --poses 20 --seed 1
+	test -d $(DEVICE_DATA) || ./target/release/sim dataset --out $(DEVICE_DATA) --subjects 480 --poses 5 --seed 1
 	$(PYTHON) -m gdvae spectra $(DEVICE_DATA) --count 22 >/dev/null
-	mkdir -p .device/wheels .device/spectra
+	rm -rf .device/spectra && mkdir -p .device/wheels .device/spectra
 	cp $(DEVICE_DATA)/.spectra/*.npy .device/spectra/
 	$(PYTHON) -m pip download --quiet --no-deps --only-binary=:all: --python-version 3.12 \
 		--implementation cp --platform manylinux2014_x86_64 -d .device/wheels trimesh==5.2.0

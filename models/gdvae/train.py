@@ -29,7 +29,7 @@ import torch
 
 from .ae import AEConfig, Autoencoder, ae_loss, restore_batch_norms
 from .data import DepthCamera, MeshDataset
-from .geometry import matrix_to_quaternion, quaternion_to_matrix, random_rotation_matrices, rotate
+from .geometry import chamfer, matrix_to_quaternion, quaternion_to_matrix, random_rotation_matrices, rotate
 from .paired import PairedBatches, Pairing
 from .surface import PointSampler
 from .vae import LatentVAE, VAEConfig, vae_loss
@@ -358,7 +358,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
 
     ae.to(device)
     if state["stage"] == "ae":
-        train_ae(ae, sampler, chosen, state, save, run_dir, device, limits.ae_seconds, loader_workers, stages)
+        probe = ReconstructionProbe(dataset, train_indices, chosen, device)
+        train_ae(ae, sampler, chosen, state, save, run_dir, device, limits.ae_seconds, loader_workers, stages, probe)
         state = {"stage": "bank", "iteration": 0}
         save(state)
     if stop_after == "ae":
@@ -438,13 +439,50 @@ def ae_batches(sampler: PointSampler, chosen: Recipe, copies: int, start: int, w
     return iter(loader)
 
 
+class ReconstructionProbe:
+    """d_C of the AE's reconstructions of fixed clouds of `meshes` training meshes and of as many
+    held-out ones (the validation split, else the test split), each seen as training sees it (a
+    camera view with the recipe's `partial_views` share, else the whole surface) in a fixed
+    rotation, against a fresh whole-surface sample: what `evaluate` calls d_C. Logged with every
+    progress line: while the training figure falls and the held-out one does not, the autoencoder
+    is memorising its training subjects, and more subjects will help it more than more iterations."""
+
+    def __init__(self, dataset: MeshDataset, train_indices: list[int], chosen: Recipe, device, meshes: int = 64,
+                 seed: int = 12345):
+        rng = np.random.default_rng(seed)
+        held_out = dataset.indices("validation") or dataset.indices("test")
+        groups = {"train": train_indices, "heldout": held_out}
+        camera = DepthCamera() if chosen.depth_camera_views else None
+        generator = torch.Generator().manual_seed(seed)
+        self.sets = {}
+        for name, indices in groups.items():
+            if not indices:
+                continue
+            chosen_indices = sorted(rng.choice(indices, size=min(meshes, len(indices)), replace=False).tolist())
+            sampler = PointSampler(dataset, chosen_indices, chosen.ae.points, seed, camera, device)
+            everyone = torch.arange(len(chosen_indices))
+            rotations = random_rotation_matrices(len(chosen_indices), generator, chosen.ae.full_rotations).to(device)
+            inputs = rotate(sampler.views(everyone, 1, chosen.partial_views), rotations)
+            self.sets[name] = (inputs, rotate(sampler.clouds(everyone), rotations))
+
+    @torch.no_grad()
+    def measure(self, ae) -> dict[str, float]:
+        was_training = ae.training
+        ae.eval()
+        figures = {f"d_C_{name}": float(chamfer(ae(inputs).reconstruction, targets).mean())
+                   for name, (inputs, targets) in self.sets.items()}
+        ae.train(was_training)
+        return figures
+
+
 def fused_adam(device) -> bool:
     """Adam's fused kernel on a GPU: one launch for all parameters, where the default updates
     them in a few launches per parameter group (the VAE has 162 parameter tensors)."""
     return torch.device(device or "cpu").type == "cuda"
 
 
-def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir, device, budget_seconds, workers, stages) -> None:
+def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir, device, budget_seconds, workers, stages,
+             probe: ReconstructionProbe | None = None) -> None:
     optimizer = torch.optim.Adam(ae.parameters(), lr=chosen.ae_learning_rate, fused=fused_adam(device))
     schedule = Plateau(optimizer, chosen.ae_min_learning_rate)
     if "optimizer" in state:
@@ -473,7 +511,8 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir, device, budget_s
         optimizer.step()
         if iteration >= pretrain:
             schedule.step(losses.parts.tensor("total"))
-        progress.update(iteration + 1, lambda: {**losses.parts, "lr": optimizer.param_groups[0]["lr"]},
+        progress.update(iteration + 1, lambda: {**losses.parts, "lr": optimizer.param_groups[0]["lr"],
+                                                **(probe.measure(ae) if probe and iteration >= pretrain else {})},
                         force=iteration + 1 == total)
         if time.monotonic() - last_save > chosen.checkpoint_seconds and iteration + 1 < total:
             save({"stage": "ae", "iteration": iteration + 1, "optimizer": optimizer.state_dict(),

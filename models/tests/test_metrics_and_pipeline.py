@@ -83,6 +83,9 @@ def test_smoke_training_evaluation_and_export(tiny_dataset, tmp_path):
     run, bundle, metrics = tmp_path / "run", tmp_path / "bundle", tmp_path / "metrics.json"
     assert main(["train", str(tiny_dataset), "--out", str(run), "--recipe", "smoke"]) == 0
     assert (run / "checkpoint.pt").exists()
+    # The AE's last progress record holds the reconstruction probe: training and held-out d_C.
+    last_ae = [r for r in map(json.loads, (run / "log.jsonl").read_text().splitlines()) if r["stage"] == "ae"][-1]
+    assert np.isfinite(last_ae["d_C_train"]) and np.isfinite(last_ae["d_C_heldout"]) and last_ae["d_C_heldout"] > 0
     assert main(["train", str(tiny_dataset), "--out", str(run), "--recipe", "smoke"]) == 0  # resumes: done
     assert main(["evaluate", str(run), str(tiny_dataset), "--out", str(metrics)]) == 0
     measured = json.loads(metrics.read_text())
@@ -391,3 +394,26 @@ def test_import_tolerates_another_machines_rounding_but_not_a_different_graph(ti
     assert (code == 0) == imports, capsys.readouterr().err
     if not imports:
         assert "differs from the bundle's graphs" in capsys.readouterr().err
+
+
+def test_the_reconstruction_probe_measures_training_and_held_out_meshes_apart(tiny_dataset):
+    import torch
+
+    from gdvae.ae import Autoencoder
+    from gdvae.data import load_dataset
+    from gdvae.train import ReconstructionProbe, recipe
+
+    dataset = load_dataset(tiny_dataset)
+    chosen = recipe("smoke")
+    probe = ReconstructionProbe(dataset, dataset.indices("train"), chosen, "cpu", meshes=5)
+    # The tiny dataset holds out whole subjects (its test split): 5 meshes of each side.
+    assert {name: len(inputs) for name, (inputs, _) in probe.sets.items()} == {"train": 5, "heldout": 5}
+    ae = Autoencoder(chosen.ae).train()
+    figures = probe.measure(ae)
+    assert set(figures) == {"d_C_train", "d_C_heldout"} and all(v > 0 for v in figures.values())
+    assert ae.training  # left as it was found
+    assert probe.measure(ae) == figures  # fixed clouds: the same model measures the same
+    # The figure is the distance to the set's own targets: targets moved away measure higher.
+    inputs, targets = probe.sets["heldout"]
+    probe.sets["heldout"] = (inputs, targets * 5.0)
+    assert probe.measure(ae)["d_C_heldout"] > figures["d_C_heldout"]

@@ -51,13 +51,18 @@ def test_surface_points_are_area_weighted_as_the_numpy_reference_draws_them(monk
     assert (points[:2][points[:2, :, 0] > -0.1] - torch.tensor([0.4, 0, 0])).mean(0).norm() < 0.02
 
 
+def dense_two_balls(views: int, seed: int):
+    """`views` dense samples (20,000 points) of `two_balls`, the directions towards a camera on +x,
+    the cache and the generator."""
+    cache = MeshCache([two_balls()], scale=1.0)
+    generator = torch.Generator().manual_seed(seed)
+    dense = cache.sample(torch.zeros(views, dtype=torch.long), 20000, generator)
+    return dense, torch.tensor([[1.0, 0.0, 0.0]]).expand(views, 3), cache, generator
+
+
 def test_the_depth_camera_sees_only_the_nearest_surface_and_adds_depth_noise():
     # The small ball hides behind the large one, seen from 3 m along +x.
-    mesh = two_balls()
-    cache = MeshCache([mesh], scale=1.0)
-    generator = torch.Generator().manual_seed(0)
-    dense = cache.sample(torch.zeros(4, dtype=torch.long), 20000, generator)
-    towards = torch.tensor([[1.0, 0.0, 0.0]]).expand(4, 3)
+    dense, towards, cache, generator = dense_two_balls(4, seed=0)
     exact = DepthCamera(disparity_sigma=0.0, distance_m=(3.0, 3.0))
     seen = depth_camera_views(exact, dense, towards, 400, 1.0, generator)
     assert seen.shape == (4, 400, 3) and seen.dtype == torch.float32
@@ -79,11 +84,7 @@ def test_the_depth_camera_sees_only_the_nearest_surface_and_adds_depth_noise():
 
 
 def test_a_view_with_fewer_points_than_asked_repeats_seen_points_only():
-    mesh = two_balls()
-    cache = MeshCache([mesh], scale=1.0)
-    generator = torch.Generator().manual_seed(1)
-    dense = cache.sample(torch.zeros(2, dtype=torch.long), 20000, generator)
-    towards = torch.tensor([[1.0, 0.0, 0.0]]).expand(2, 3)
+    dense, towards, _, generator = dense_two_balls(2, seed=1)
     # About 2,700 of the 20,000 are seen: 6,000 asked are repeats of them.
     seen = depth_camera_views(DepthCamera(disparity_sigma=0.0), dense, towards, 6000, 1.0, generator)
     assert seen.shape == (2, 6000, 3)
