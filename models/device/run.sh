@@ -30,6 +30,8 @@ DEFAULT_INIT=models/bundles/cpu-fo
 INIT=${INIT-$DEFAULT_INIT}
 REGIME=${REGIME:-fo}
 LEARNING_RATE=${LEARNING_RATE:-3e-4}
+DEADLINE_S=${DEADLINE_S:-570}      # the whole job, inside the device tool's 600-second command
+RESERVE_S=${RESERVE_S:-90}         # the code bank, the export and its calibration, after the VAE
 WORKERS=${WORKERS:-0}              # loader processes, CPU only: on a GPU the batches are made on it
 SMOKE_FIRST=${SMOKE_FIRST:-1}      # 0: skip the smoke step (the smoke step itself runs with 0)
 PYTHON=${PYTHON:-python3}
@@ -65,6 +67,14 @@ if compgen -G ".device/spectra/*.npy" >/dev/null; then  # computed here once: th
     mkdir -p "$WORK/data/.spectra" && cp .device/spectra/*.npy "$WORK/data/.spectra/"
 fi
 
+# The AE's budget gives way when the smoke step and the data took longer than planned, so that
+# the bank, the VAE and the export still end before DEADLINE_S (the tool kills the command at 600 s
+# and a killed job returns no bundle).
+elapsed=$(( $(date +%s) - started ))
+AE_MINUTES=$("$PYTHON" -c "import sys; planned, left = float(sys.argv[1]), (float(sys.argv[2]) - float(sys.argv[3])
+    - 60 * float(sys.argv[4]) - float(sys.argv[5])) / 60; print(round(max(0.05, min(planned, left)), 2))" \
+    "$AE_MINUTES" "$DEADLINE_S" "$elapsed" "$VAE_MINUTES" "$RESERVE_S")
+say "AE budget: $AE_MINUTES min (${elapsed} s spent; the job ends by ${DEADLINE_S} s)"
 args=(--recipe "$RECIPE" --regime "$REGIME" --device "$DEVICE" --ae-minutes "$AE_MINUTES"
       --vae-minutes "$VAE_MINUTES" --loader-workers "$WORKERS" --set vae.omega_jacobian=0
       --set "recipe.ae_learning_rate=$LEARNING_RATE")

@@ -18,11 +18,14 @@ SIM = ROOT / "target" / "release" / "sim"
 @pytest.mark.parametrize("init", ["", "models/bundles/cpu-fo"], ids=["fresh", "continued"])
 def test_the_device_job_runs_at_smoke_size_and_returns_at_most_eight_files(tmp_path, init):
     out = tmp_path / "out"
-    # The continued job runs its smoke step first, as on a device; the fresh one skips it.
-    done = subprocess.run(["bash", "models/device/run.sh"], cwd=ROOT, env=job_environment(tmp_path, init, {
-        "SMOKE_FIRST": "1" if init else "0"}), capture_output=True, text=True, timeout=900)
+    # The continued job runs its smoke step first, as on a device; the fresh one skips it and has
+    # asked for more AE minutes than its deadline leaves, so its AE budget gives way.
+    extra = {"SMOKE_FIRST": "1"} if init else {"SMOKE_FIRST": "0", "AE_MINUTES": "5", "DEADLINE_S": "1"}
+    done = subprocess.run(["bash", "models/device/run.sh"], cwd=ROOT, env=job_environment(tmp_path, init, extra),
+                          capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert ("smoke step passed" in done.stdout) == bool(init)
+    assert "AE budget: 0.05 min" in done.stdout
     files = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
     assert len(files) <= 8, files  # the device tool returns at most 8 files
     assert {"bundle/manifest.json", "bundle/encoder.onnx", "train.log", "run.json"} <= set(files)
