@@ -32,6 +32,7 @@ REGIME=${REGIME:-fo}
 LEARNING_RATE=${LEARNING_RATE:-3e-4}
 DEADLINE_S=${DEADLINE_S:-570}      # the whole job, inside the device tool's 600-second command
 RESERVE_S=${RESERVE_S:-90}         # the code bank, the export and its calibration, after the VAE
+DEPTH_CAMERA=${DEPTH_CAMERA:-1}    # 1: partial views as the depth camera renders them (what the node sees)
 WORKERS=${WORKERS:-0}              # loader processes, CPU only: on a GPU the batches are made on it
 SMOKE_FIRST=${SMOKE_FIRST:-1}      # 0: skip the smoke step (the smoke step itself runs with 0)
 PYTHON=${PYTHON:-python3}
@@ -78,6 +79,7 @@ say "AE budget: $AE_MINUTES min (${elapsed} s spent; the job ends by ${DEADLINE_
 args=(--recipe "$RECIPE" --regime "$REGIME" --device "$DEVICE" --ae-minutes "$AE_MINUTES"
       --vae-minutes "$VAE_MINUTES" --loader-workers "$WORKERS" --set vae.omega_jacobian=0
       --set "recipe.ae_learning_rate=$LEARNING_RATE")
+if [ "$DEPTH_CAMERA" = 1 ]; then args+=(--set recipe.depth_camera_views=true); fi
 if [ -n "$INIT" ]; then
     say "importing $INIT"
     "$PYTHON" -m gdvae import-bundle "$INIT" --out "$WORK/imported"
