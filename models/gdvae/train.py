@@ -341,11 +341,13 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if "ae" in state:
         ae.load_state_dict(state["ae"])
     stages = StageRecord(run_dir / "stages.json", str(device))
-    started = time.monotonic()
-    sampler = PointSampler(dataset, train_indices, chosen.ae.points, chosen.seed + state["iteration"],
-                           DepthCamera() if chosen.depth_camera_views else None, device)
-    log.info("%d training meshes on %s for sampling (%.0f MB, %.1f s)", len(sampler), device,
-             sampler.cache.bytes() / 1e6, time.monotonic() - started)
+    sampler = None
+    if state["stage"] in ("ae", "bank"):  # the VAE trains on the code bank, without clouds
+        started = time.monotonic()
+        sampler = PointSampler(dataset, train_indices, chosen.ae.points, chosen.seed + state["iteration"],
+                               DepthCamera() if chosen.depth_camera_views else None, device)
+        log.info("%d training meshes on %s for sampling (%.0f MB, %.1f s)", len(sampler), device,
+                 sampler.cache.bytes() / 1e6, time.monotonic() - started)
     if imported and state["stage"] == "ae":
         chosen_meshes, _ = sampler.batch(64)
         restore_batch_norms(ae, sampler.views(chosen_meshes, 3, chosen.partial_views).cpu())
