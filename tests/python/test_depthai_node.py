@@ -17,8 +17,7 @@ def test_depthai_point_clouds_are_encoded_by_the_node(tmp_path):
                    check=True, capture_output=True, timeout=120)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     shipped = (ROOT / "config" / "depthai.toml").read_text()
-    settings = shipped.replace('bundle = "../models/bundles/cpu-fo"',
-                               f'bundle = "{ROOT / "models/bundles/cpu-fo"}"')
+    settings = shipped.replace('bundle = "../models/', f'bundle = "{ROOT / "models"}/')  # the shipped bundle
     settings = settings.replace('listen = ["tcp/127.0.0.1:7447"]', f'listen = ["{endpoint}"]\nmulticast_scouting = false')
     assert settings != shipped
     config = tmp_path / "depthai.toml"
