@@ -50,10 +50,16 @@ export PYTHONPATH="$PWD/models${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 "$PYTHON" -c "import torch, trimesh; print('torch', torch.__version__, 'device', '$DEVICE',
     torch.cuda.get_device_name() if '$DEVICE'.startswith('cuda') else '')"
 
+# The dataset is generated on the CPU cores while the smoke step runs on the device.
+say "dataset: $SUBJECTS subjects x $POSES poses per family, seed $SEED"
+"$SIM" dataset --out "$WORK/data" --subjects "$SUBJECTS" --poses "$POSES" --seed "$SEED" >"$WORK/dataset.log" 2>&1 &
+dataset=$!
+
 if [ "$SMOKE_FIRST" = 1 ]; then
     say "smoke step: this job at smoke size on $DEVICE (log: $WORK/smoke.log)"
     if ! OUT="$WORK/smoke-out" WORK="$WORK/smoke" SMOKE_FIRST=0 SUBJECTS=5 POSES=2 AE_MINUTES=0.05 \
             VAE_MINUTES=0.05 bash "$0" >"$WORK/smoke.log" 2>&1; then
+        kill "$dataset" 2>/dev/null || true
         cp "$WORK/smoke.log" "$OUT/smoke.log"
         tail -n 40 "$WORK/smoke.log"
         say "the smoke step failed: nothing trained (its log is in \$OUT/smoke.log)"
@@ -61,9 +67,12 @@ if [ "$SMOKE_FIRST" = 1 ]; then
     fi
     say "smoke step passed"
 fi
-
-say "dataset: $SUBJECTS subjects x $POSES poses per family, seed $SEED"
-"$SIM" dataset --out "$WORK/data" --subjects "$SUBJECTS" --poses "$POSES" --seed "$SEED" >/dev/null
+if ! wait "$dataset"; then
+    cat "$WORK/dataset.log"
+    say "the dataset could not be generated"
+    exit 1
+fi
+say "dataset ready"
 if compgen -G ".device/spectra/*.npy" >/dev/null; then  # computed here once: the cache is keyed by geometry
     mkdir -p "$WORK/data/.spectra" && cp .device/spectra/*.npy "$WORK/data/.spectra/"
 fi

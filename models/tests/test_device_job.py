@@ -53,7 +53,7 @@ def test_a_failing_smoke_step_stops_the_job_before_it_trains_and_returns_its_log
                           capture_output=True, text=True, timeout=300)
     assert done.returncode != 0
     assert "the smoke step failed" in done.stdout
-    assert not (tmp_path / "work" / "data").exists()  # the job's own dataset was never made
+    assert not (tmp_path / "work" / "run").exists()  # nothing trained
     out = tmp_path / "out"
     assert "no-such-bundle" in (out / "smoke.log").read_text()
     assert not (out / "bundle").exists()
