@@ -8,10 +8,12 @@ H200 those processes fed the model 5,400 clouds/s and were the limit. Here a bat
 handful of kernels: area-weighted face choice by `searchsorted` on each mesh's cumulative areas,
 a depth buffer per view by `scatter_reduce`, its 3x3 minimum by `max_pool2d`.
 
-The sampling follows `data.py` (its NumPy functions stay the reference, and the tests compare the
-two): area-weighted surface points in model units (dataset scale, centred on the bounding box),
-random view directions from above, and `data.DepthCamera`'s nearest-point-per-pixel visibility and
-stereo depth noise. Unlike the NumPy camera, each view is rendered from a fresh dense sample.
+The sampling is the per-cloud NumPy sampler's it replaced (`data.sample_surface` stays, and the
+tests compare its area weighting with this one's): area-weighted surface points in model units
+(dataset scale, centred on the bounding box), random view directions from above, and
+`data.DepthCamera`'s nearest-point-per-pixel visibility and stereo depth noise. The NumPy camera
+rendered every view of a mesh from one dense sample drawn once; here the views of a batch redraw a
+share of theirs (`PointSampler.dense_refresh`).
 """
 
 from __future__ import annotations
