@@ -227,10 +227,14 @@ class PointSampler:
         each chosen mesh is, with probability `partial`, the side a camera sees from a random
         direction, else its whole surface."""
         meshes = torch.as_tensor(chosen, device=self.device).long().repeat(copies)
-        clouds = self.cache.sample(meshes, self.points, self.generator)
+        if partial <= 0:
+            return self.cache.sample(meshes, self.points, self.generator)
         viewed = torch.rand(len(meshes), generator=self.generator, device=self.device) < partial
-        if partial > 0 and bool(viewed.any()):
-            rows = viewed.nonzero().squeeze(1)
+        clouds = torch.empty(len(meshes), self.points, 3, device=self.device)
+        whole, rows = (~viewed).nonzero().squeeze(1), viewed.nonzero().squeeze(1)
+        if len(whole):
+            clouds[whole] = self.cache.sample(meshes[whole], self.points, self.generator)
+        if len(rows):
             directions = view_directions(len(rows), self.generator, self.device)
             clouds[rows] = self.partial_views(meshes[rows], directions)
         return clouds
