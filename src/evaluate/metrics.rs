@@ -407,6 +407,78 @@ pub fn window_spreads(run: &[(Vec<f32>, f64)], window: usize) -> Vec<(f64, f64)>
         .collect()
 }
 
+/// One matched frame, as `pose_retrieval` reads it: who is seen, the code, and the true pose.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PoseFrame {
+    pub family: String,
+    pub subject: String,
+    pub code: Vec<f32>,
+    /// The sim's joint angles (axis-angle per non-root joint, rad): one layout per family.
+    pub theta: Vec<f32>,
+}
+
+/// Whether a pose code names the body's pose across individuals (issue 32), free of what the walk
+/// and stand motions of the recordings happen to do: for each frame, the frame of **another
+/// subject of the same family** whose code is nearest, and the true pose distance to it over the
+/// median true pose distance to all that family's other subjects' frames (per frame, then the
+/// median over frames). About 1: the code says nothing of the pose (a dead code, or one that
+/// follows the view or the subject); 0: it finds the same pose on another body. The truth's own
+/// nearest neighbour gives the floor that the recordings' poses allow.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct PoseRetrieval {
+    /// Frames that had another subject of their family to search.
+    pub frames: usize,
+    /// Median over frames of (true distance to the code's nearest) / (median true distance).
+    pub code_ratio: Option<f64>,
+    /// The same with the nearest true pose: the best any code can do here.
+    pub truth_floor: Option<f64>,
+}
+
+/// At most this many frames per family are searched (evenly strided): consecutive frames of a
+/// 30 Hz recording are nearly alike, and the search is quadratic.
+pub const POSE_RETRIEVAL_MAX_FRAMES: usize = 3000;
+
+pub fn pose_retrieval(frames: &[PoseFrame]) -> PoseRetrieval {
+    let mut families: Vec<&str> = frames.iter().map(|f| f.family.as_str()).collect();
+    families.sort_unstable();
+    families.dedup();
+    let (mut code_ratios, mut truth_ratios) = (Vec::new(), Vec::new());
+    for family in families {
+        let all: Vec<&PoseFrame> = frames
+            .iter()
+            .filter(|f| f.family == family && !f.theta.is_empty() && !f.code.is_empty())
+            .collect();
+        let stride = all.len().div_ceil(POSE_RETRIEVAL_MAX_FRAMES).max(1);
+        let members: Vec<&PoseFrame> = all.into_iter().step_by(stride).collect();
+        for query in &members {
+            let others = members.iter().filter(|o| {
+                o.subject != query.subject && o.theta.len() == query.theta.len() && o.code.len() == query.code.len()
+            });
+            let (mut truth_distances, mut nearest_code, mut nearest_truth) =
+                (Vec::new(), (f64::INFINITY, 0.0), f64::INFINITY);
+            for other in others {
+                let truth = code_step(&query.theta, &other.theta);
+                let code = code_step(&query.code, &other.code);
+                truth_distances.push(truth);
+                if code < nearest_code.0 {
+                    nearest_code = (code, truth);
+                }
+                nearest_truth = nearest_truth.min(truth);
+            }
+            let Some(median) = quantile(&sorted(truth_distances), 0.5).filter(|m| *m > 0.0) else {
+                continue;
+            };
+            code_ratios.push(nearest_code.1 / median);
+            truth_ratios.push(nearest_truth / median);
+        }
+    }
+    PoseRetrieval {
+        frames: code_ratios.len(),
+        code_ratio: quantile(&sorted(code_ratios), 0.5),
+        truth_floor: quantile(&sorted(truth_ratios), 0.5),
+    }
+}
+
 /// The Euclidean distance between two codes.
 pub fn code_step(a: &[f32], b: &[f32]) -> f64 {
     a.iter()

@@ -28,7 +28,9 @@ use serde::Serialize;
 
 use crate::config::SourceSettings;
 use crate::state::{Output, State};
-use metrics::{AngleErrors, Changes, Distances, PoseCodeMotion, Retrieval, Segment, Separability};
+use metrics::{
+    AngleErrors, Changes, Distances, PoseCodeMotion, PoseFrame, PoseRetrieval, Retrieval, Segment, Separability,
+};
 use truth::TruthFrame;
 
 pub const CONVENTION: &str =
@@ -154,6 +156,9 @@ pub struct RecordingReport {
     pub pose_code: Option<PoseCodeMotion>,
     /// The same for the published (filtered) z_E, what a subscriber sees.
     pub pose_code_published: Option<PoseCodeMotion>,
+    /// The same for the true pose (the sim's joint angles): what the walks and stands of this
+    /// recording ask of a pose code (None where the truth has no joint angles).
+    pub true_pose: Option<PoseCodeMotion>,
     /// With several objects (states that name tracks): the tracks against every subject.
     pub objects: Option<objects::ObjectsReport>,
     #[serde(skip)]
@@ -163,6 +168,12 @@ pub struct RecordingReport {
     pub raw_pose_samples: PoseCodeSamples,
     #[serde(skip)]
     pub published_pose_samples: PoseCodeSamples,
+    #[serde(skip)]
+    pub true_pose_samples: PoseCodeSamples,
+    /// Per matched frame with joint angles: the raw and the published z_E with the true pose, for
+    /// `Overall`'s pose retrieval.
+    #[serde(skip)]
+    pub pose_frames: Vec<(PoseFrame, PoseFrame)>,
 }
 
 /// What `metrics::pose_code_motion` reads of one z_E signal (raw or published) of a recording: the
@@ -217,6 +228,11 @@ pub struct Overall {
     pub pose_code: PoseCodeMotion,
     /// The same for the published (filtered) z_E.
     pub pose_code_published: PoseCodeMotion,
+    /// The same for the true pose: the ratios a code that is exactly the pose would show.
+    pub true_pose: PoseCodeMotion,
+    /// Whether z_E finds the same pose on another subject of the family (raw, published).
+    pub pose_retrieval: PoseRetrieval,
+    pub pose_retrieval_published: PoseRetrieval,
     /// With several objects: the multi-object figures pooled over the recordings.
     pub objects: Option<objects::ObjectsReport>,
 }
@@ -249,6 +265,8 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
     let mut changes_all = Changes::default();
     let mut raw_pose_all = PoseCodeSamples::default();
     let mut published_pose_all = PoseCodeSamples::default();
+    let mut true_pose_all = PoseCodeSamples::default();
+    let (mut raw_pose_frames, mut published_pose_frames) = (Vec::new(), Vec::new());
     for recording in recordings {
         let mut own = states.get(recording.stream.as_str()).cloned().unwrap_or_default();
         // Several objects: the tracks against every subject; the single-object figures below
@@ -285,6 +303,11 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
         segments.extend(own_segments);
         raw_pose_all.extend(&report.raw_pose_samples);
         published_pose_all.extend(&report.published_pose_samples);
+        true_pose_all.extend(&report.true_pose_samples);
+        for (raw, published) in report.pose_frames.drain(..) {
+            raw_pose_frames.push(raw);
+            published_pose_frames.push(published);
+        }
         if let Some(changes) = &report.changes {
             changes_all.add(changes);
         }
@@ -317,6 +340,9 @@ pub fn report(recordings: &[Recording], outputs: &[Output], options: &EvaluateOp
             .collect(),
         pose_code: raw_pose_all.motion(),
         pose_code_published: published_pose_all.motion(),
+        true_pose: true_pose_all.motion(),
+        pose_retrieval: metrics::pose_retrieval(&raw_pose_frames),
+        pose_retrieval_published: metrics::pose_retrieval(&published_pose_frames),
         objects: {
             let several: Vec<&objects::ObjectsReport> = reports.iter().filter_map(|r| r.objects.as_ref()).collect();
             (!several.is_empty()).then(|| objects::pooled(&several))
@@ -354,6 +380,10 @@ fn with_subjects(truth: &[TruthFrame]) -> Vec<TruthFrame> {
         .collect()
 }
 
+fn as_f32(values: &[f64]) -> Vec<f32> {
+    values.iter().map(|v| *v as f32).collect()
+}
+
 fn horizontal_distance(state: &State, truth: &TruthFrame) -> f64 {
     let dx = state.centre_m[0] as f64 - truth.translation[0];
     let dy = state.centre_m[1] as f64 - truth.translation[1];
@@ -386,6 +416,8 @@ fn recording_report(
     let mut reported_at = Vec::new();
     let mut raw_pose = PoseCodeSamples::default();
     let mut published_pose = PoseCodeSamples::default();
+    let mut true_pose = PoseCodeSamples::default();
+    let mut pose_frames = Vec::new();
     let mut previous: Option<(usize, &State)> = None;
     for state in states {
         let Some(&(index, t)) = state.stamps.sensor_ns.and_then(|s| by_stamp.get(&s)) else {
@@ -399,10 +431,23 @@ fn recording_report(
                 let speed = moved / seconds;
                 raw_pose.push(&state.raw.z_e, &earlier.raw.z_e, speed);
                 published_pose.push(&state.filtered.z_e, &earlier.filtered.z_e, speed);
+                if !t.theta.is_empty() && t.theta.len() == truth[before].theta.len() {
+                    true_pose.push(&as_f32(&t.theta), &as_f32(&truth[before].theta), speed);
+                }
             }
         } else {
             raw_pose.end_run();
             published_pose.end_run();
+            true_pose.end_run();
+        }
+        if !t.theta.is_empty() {
+            let frame = |code: &[f32]| PoseFrame {
+                family: t.family.clone(),
+                subject: t.subject.clone(),
+                code: code.to_vec(),
+                theta: as_f32(&t.theta),
+            };
+            pose_frames.push((frame(&state.raw.z_e), frame(&state.filtered.z_e)));
         }
         previous = Some((index, state));
         matched_truth[index] = true;
@@ -436,6 +481,7 @@ fn recording_report(
     }
     raw_pose.end_run();
     published_pose.end_run();
+    true_pose.end_run();
     // True changes: frames whose subject differs from the frame before.
     let true_at: Vec<usize> = (1..truth.len())
         .filter(|&i| truth[i].subject != truth[i - 1].subject)
@@ -467,9 +513,12 @@ fn recording_report(
         filtered_yaw_steps: metrics::angle_steps(&yaws),
         pose_code: has_truth.then(|| raw_pose.motion()),
         pose_code_published: has_truth.then(|| published_pose.motion()),
+        true_pose: (!true_pose.steps.is_empty()).then(|| true_pose.motion()),
         rows,
         raw_pose_samples: raw_pose,
         published_pose_samples: published_pose,
+        true_pose_samples: true_pose,
+        pose_frames,
         objects: None,
     };
     (report, segments)

@@ -143,6 +143,27 @@ pub fn print(report: &Report, summary: &RunSummary) {
             p.standing_windows,
         );
     }
+    let t = &o.true_pose;
+    if t.walking_windows + t.standing_windows > 0 {
+        println!(
+            "  true pose (the sim's joint angles, rad): spread over 1 s walking {} / standing {}, ratio {} \
+             (what a code that is exactly the pose would show on these recordings)",
+            fmt_opt(t.walking_spread_median, 1.0, 3),
+            fmt_opt(t.standing_spread_median, 1.0, 3),
+            fmt_opt(t.spread_ratio, 1.0, 2),
+        );
+    }
+    for (label, r) in [("raw", &o.pose_retrieval), ("published", &o.pose_retrieval_published)] {
+        if r.frames > 0 {
+            println!(
+                "  pose retrieval by z_E ({label}): the nearest code among the family's other subjects is {} of the \
+                 median true-pose distance away in pose (1: z_E says nothing of the pose; the nearest true pose: {}; {} frames)",
+                fmt_opt(r.code_ratio, 1.0, 2),
+                fmt_opt(r.truth_floor, 1.0, 2),
+                r.frames,
+            );
+        }
+    }
     if let Some(pooled) = &o.objects {
         println!(
             "several objects (a track matches a subject within {} m; subjects with fewer than {} visible points ignored):",

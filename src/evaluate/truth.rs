@@ -20,6 +20,10 @@ pub struct TruthFrame {
     pub yaw: f64,
     /// Where the subject stands (m, world frame; z = 0 on the ground).
     pub translation: [f64; 3],
+    /// The subject's joint angles (axis-angle per non-root joint, rad); empty in recordings whose
+    /// truth lacks them.
+    #[serde(default)]
+    pub theta: Vec<f64>,
     pub world_from_camera: Option<WorldFromCamera>,
     /// Every subject of the scene, the primary (the fields above) first; empty in recordings made
     /// before the sim had several subjects.

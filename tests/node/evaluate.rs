@@ -4,7 +4,8 @@
 use std::path::Path;
 
 use gdvae_node::evaluate::metrics::{
-    angle_errors, code_step, match_changes, pose_code_motion, retrieval, separability, window_spreads, Segment,
+    angle_errors, code_step, match_changes, pose_code_motion, pose_retrieval, retrieval, separability, window_spreads,
+    PoseFrame, Segment,
 };
 
 use crate::helpers::repo;
@@ -227,6 +228,13 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
     // its middle has at most two.
     let windows = pose["walking_windows"].as_u64().unwrap() + pose["standing_windows"].as_u64().unwrap();
     assert!(windows <= 2, "{pose}");
+    // The true pose over the same pairs of frames; the truth alone has it.
+    assert_eq!(
+        r["true_pose"]["walking_steps"], pose["walking_steps"],
+        "{}",
+        r["true_pose"]
+    );
+    assert!(bare["true_pose"].is_null());
     assert!(bare["pose_code"].is_null(), "speed needs truth");
     assert!(bare["pose_code_published"].is_null(), "speed needs truth");
     assert_eq!(bare["has_truth"], false);
@@ -246,6 +254,15 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
         .iter()
         .map(|r| r["queries"].as_u64().unwrap())
         .collect();
+    // Pose retrieval: two quadrupeds, each frame searches the other's; the bare recording has no truth.
+    assert_eq!(o["pose_retrieval"]["frames"].as_u64(), Some(states));
+    let floor = o["pose_retrieval"]["truth_floor"].as_f64().unwrap();
+    let ratio = o["pose_retrieval"]["code_ratio"].as_f64().unwrap();
+    assert!(
+        (0.0..=1.0).contains(&floor) && floor <= ratio,
+        "{}",
+        o["pose_retrieval"]
+    );
     let segment_lengths_ok = states == 60; // with a rejection a segment may fall under 2 n frames
     if segment_lengths_ok {
         assert_eq!(
@@ -297,6 +314,65 @@ fn pose_code_motion_compares_steps_while_walking_with_steps_while_standing() {
     let p = pose_code_motion(&[], &[(2.0, 0.5), (0.4, 0.0), (0.6, 0.02), (9.0, 0.1)]);
     assert_eq!((p.walking_windows, p.standing_windows), (1, 2));
     assert!((p.spread_ratio.unwrap() - 4.0).abs() < 1e-9, "{p:?}");
+}
+
+/// Four subjects of one family, 60 frames each, poses drawn on a circle of joint angles; `code`
+/// makes each frame's z_E from (subject, pose angle, frame number).
+fn pose_frames(code: impl Fn(usize, f32, usize) -> Vec<f32>) -> Vec<PoseFrame> {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let mut frames = Vec::new();
+    for subject in 0..4 {
+        for n in 0..60 {
+            let angle: f32 = rng.random_range(0.0..std::f32::consts::TAU);
+            frames.push(PoseFrame {
+                family: "quadruped".into(),
+                subject: format!("s{subject}"),
+                code: code(subject, angle, n),
+                theta: vec![0.3 * angle.sin(), 0.3 * angle.cos(), 0.1],
+            });
+        }
+    }
+    frames
+}
+
+#[test]
+fn pose_retrieval_finds_the_pose_on_other_subjects_only_with_a_code_that_carries_it() {
+    // A code that is the pose (scaled, in other units): its nearest is the nearest true pose.
+    let exact = pose_retrieval(&pose_frames(|_, angle, _| vec![angle.sin(), angle.cos()]));
+    assert_eq!(exact.frames, 240);
+    assert_eq!(exact.code_ratio, exact.truth_floor);
+    assert!(exact.truth_floor.unwrap() < 0.1, "{exact:?}");
+    // A code that names the subject, or the pose only within one subject (same-subject frames are
+    // never searched), or counts frames (a drift with time): about 1.
+    for dead in [
+        pose_retrieval(&pose_frames(|subject, _, _| vec![subject as f32])),
+        pose_retrieval(&pose_frames(|subject, angle, _| vec![100.0 * subject as f32 + angle])),
+        pose_retrieval(&pose_frames(|_, _, n| vec![n as f32, 0.0])),
+    ] {
+        let ratio = dead.code_ratio.unwrap();
+        assert!((0.6..1.4).contains(&ratio), "{dead:?}");
+    }
+    // A pose code with noise on it lies between.
+    let noisy = pose_retrieval(&pose_frames(|subject, angle, n| {
+        vec![angle.sin() + 0.3 * ((subject * 7 + n * 13) % 5) as f32, angle.cos()]
+    }));
+    let ratio = noisy.code_ratio.unwrap();
+    assert!(ratio > exact.code_ratio.unwrap() && ratio < 0.6, "{noisy:?}");
+    // One subject per family, or no joint angles: nothing to search.
+    let alone: Vec<PoseFrame> = pose_frames(|_, a, _| vec![a])
+        .into_iter()
+        .filter(|f| f.subject == "s0")
+        .collect();
+    assert_eq!(pose_retrieval(&alone).frames, 0);
+    let blind: Vec<PoseFrame> = pose_frames(|_, a, _| vec![a])
+        .into_iter()
+        .map(|f| PoseFrame { theta: Vec::new(), ..f })
+        .collect();
+    assert_eq!(
+        (pose_retrieval(&blind).frames, pose_retrieval(&blind).code_ratio),
+        (0, None)
+    );
 }
 
 #[test]
