@@ -22,7 +22,10 @@ difference at a time to the kit's whole-surface sample:
 The Python streams are encoded as the node's yaw copies (`--yaw-copies`, default 4). For each it
 prints, per family, the median within-subject distance between adjacent 10-frame windows (equal
 weights) next to the median same-family step between subjects, and the share of those steps above
-the within-subject p99, so the stream where the ratio jumps names the step to fix.
+the within-subject p99, so the stream where the ratio jumps names the step to fix. Then, per stream
+and family, the pose code's retrieval of the true pose across subjects (`gdvae-node evaluate`'s
+figure: the true-pose distance to the frame of another subject whose z_E is nearest, over the
+median), so the same ladder shows where z_E stops naming the pose.
 
     .venv/bin/python bench/identity_domain.py SET-states.jsonl RECORDINGS_DIR [--every K] [--streams A,B]
 """
@@ -31,16 +34,19 @@ import json
 import subprocess
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import onnxruntime
+import torch
 from mcap.reader import make_reader
 from scipy.spatial import cKDTree
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "models"))
 from gdvae.data import DepthCamera, read_mesh, sample_surface  # noqa: E402
+from gdvae.surface import MeshCache, depth_camera_views  # noqa: E402
 from python_reference import decode_xyz, largest_cluster  # noqa: E402
 from python_reference import farthest_point_sampling as farthest_points  # noqa: E402
 
@@ -50,6 +56,7 @@ STREAMS = ("whole", "view", "view-recentred", "view-fps", "camera", "camera-nois
 CROP = np.array([-1.2, -1.2, 0.02, 1.2, 1.2, 2.5])  # config/replay.toml's
 NOISY = DepthCamera(dense=30000)  # the sim's OAK-D and the benchmark's --decimation 2
 EXACT = DepthCamera(dense=30000, disparity_sigma=0.0)
+SEEN = 4096  # points drawn from what the camera sees, then thinned by farthest points
 
 
 def box_centred(points):
@@ -57,20 +64,33 @@ def box_centred(points):
 
 
 def clouds_of(mesh, camera_in_object, points, rng, wanted):
-    """The simulated streams in `wanted`, each a cloud of `points` for the encoder (metres)."""
+    """The simulated streams in `wanted`, each a cloud of `points` for the encoder (metres), drawn
+    by the kit's own samplers (`gdvae.surface`) in the mesh's frame centred on its bounding box."""
+    cache = MeshCache([mesh], 1.0)
     centre = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
-    facing = camera_in_object - centre
-    facing /= np.linalg.norm(facing)
-    view = sample_surface(mesh, points, rng, facing)
+    eye = torch.as_tensor(camera_in_object - centre, dtype=torch.float32)[None]
+    facing = eye / eye.norm()
+    generator = torch.Generator().manual_seed(int(rng.integers(2**31)))
+    one = torch.zeros(1, dtype=torch.long)
+
+    def surface(count, towards=None):
+        drawn = cache.sample(one, count, generator) if towards is None else cache.sample_facing(one, count, towards, generator)
+        return drawn[0].numpy().astype(np.float64)
+
+    def camera(model):
+        at = replace(model, distance_m=(float(eye.norm()),) * 2)  # the recording's own distance
+        dense = cache.sample(one, at.dense, generator)
+        seen = depth_camera_views(at, dense, facing, SEEN, 1.0, generator, torch.zeros(1, 3))
+        return box_centred(farthest_points(seen[0].numpy().astype(np.float64), points, rng))
+
+    view = surface(points, facing)
     makers = {
-        "whole": lambda: sample_surface(mesh, points, rng) - centre,
-        "view": lambda: view - centre,
+        "whole": lambda: surface(points),
+        "view": lambda: view,
         "view-recentred": lambda: box_centred(view),
-        "view-fps": lambda: box_centred(farthest_points(sample_surface(mesh, 4096, rng, facing), points, rng)),
-        "camera": lambda: box_centred(farthest_points(
-            EXACT.see(sample_surface(mesh, EXACT.dense, rng), camera_in_object, rng, 1.0), points, rng)),
-        "camera-noisy": lambda: box_centred(farthest_points(
-            NOISY.see(sample_surface(mesh, NOISY.dense, rng), camera_in_object, rng, 1.0), points, rng)),
+        "view-fps": lambda: box_centred(farthest_points(surface(4096, facing), points, rng)),
+        "camera": lambda: camera(EXACT),
+        "camera-noisy": lambda: camera(NOISY),
     }
     return {name: make() for name, make in makers.items() if name in wanted}
 
@@ -91,6 +111,31 @@ def spread(segments):
         if within and between:
             p99 = np.quantile(within, 0.99)
             out[family] = (np.median(within), np.median(between), np.mean(np.array(between) > p99), len(between))
+    return out
+
+
+def pose_retrieval(keys, codes, theta):
+    """Per family: the median over frames of the true-pose distance to the frame of another subject
+    whose code is nearest, over the median true-pose distance to all of them; and the same with the
+    nearest true pose (the floor)."""
+    out = {}
+    for family in sorted({k[2] for k in keys}):
+        mine = np.array([k[2] == family for k in keys])
+        subjects = np.array([k[1] for k in keys])
+        poses = np.zeros((len(keys), max(len(t) for t, m in zip(theta, mine) if m)))
+        poses[mine] = np.stack([t for t, m in zip(theta, mine) if m])  # one joint layout per family
+        ratios, floors = [], []
+        for i in np.nonzero(mine)[0]:
+            others = np.nonzero(mine & (subjects != subjects[i]))[0]
+            if len(others) == 0:
+                continue
+            truth = np.linalg.norm(poses[others] - poses[i], axis=1)
+            median = np.median(truth)
+            if median > 0:
+                ratios.append(truth[np.argmin(np.linalg.norm(codes[others] - codes[i], axis=1))] / median)
+                floors.append(truth.min() / median)
+        if ratios:
+            out[family] = (np.median(ratios), np.median(floors))
     return out
 
 
@@ -143,11 +188,12 @@ def as_the_node_prepares(points, truth, rng, points_out, near_mesh=None, snap=Fa
 
 
 def encoder_of(bundle):
-    """(model units per metre, N_p, an ONNX Runtime session of the encoder, z_I_mean's output index)."""
+    """(model units per metre, N_p, an ONNX Runtime session of the encoder, z_I_mean's and z_E_mean's
+    output indices)."""
     manifest = json.loads((Path(bundle) / "manifest.json").read_text())
     session = onnxruntime.InferenceSession(str(Path(bundle) / "encoder.onnx"))
-    z_i_index = [o.name for o in session.get_outputs()].index("z_I_mean")
-    return manifest["training"]["scale"], manifest["sizes"]["points"], session, z_i_index
+    names = [o.name for o in session.get_outputs()]
+    return manifest["training"]["scale"], manifest["sizes"]["points"], session, names.index("z_I_mean"), names.index("z_E_mean")
 
 
 def sampled_rows(states, recordings, every):
@@ -183,7 +229,7 @@ def main():
     parser.add_argument("--yaw-copies", type=int, default=4, help="as the node's model.yaw_copies (default 4)")
     parser.add_argument("--streams", default=",".join(STREAMS), help=f"comma-separated, of {', '.join(STREAMS)}")
     args = parser.parse_args()
-    scale, points, session, z_i_index = encoder_of(args.bundle)
+    scale, points, session, z_i_index, z_e_index = encoder_of(args.bundle)
     rows = sampled_rows(args.states, args.recordings, args.every)
     rng = np.random.default_rng(args.seed)
     streams = {name: [] for name in args.streams.split(",")}
@@ -223,21 +269,23 @@ def main():
                 print(f"  posed and sampled {i + 1}/{len(rows)} frames", file=sys.stderr)
 
     keys = [(r["state"]["stream"], r["truth"]["subject"], r["truth"]["family"]) for r in rows]
-    z = {}
+    z, z_e = {}, {}
     for name in streams:
         if name == "node":
             z[name] = np.array([r["state"]["raw"]["z_i"] for r in rows])
+            z_e[name] = np.array([r["state"]["raw"]["z_e"] for r in rows])
             continue
         # As the node's yaw copies (src/yaw_copies.rs): z_I averaged over K turned copies (all of
         # them here, the node averages the copies its rotation vote keeps).
-        copies = []
+        copies, pose_copies = [], []
         for angle in np.arange(args.yaw_copies) * 2 * np.pi / args.yaw_copies:
             c, s = np.cos(angle), np.sin(angle)
             turn = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
             batch = (np.stack(streams[name]) @ turn.T * scale).astype(np.float32)
-            copies.append(np.concatenate([session.run(None, {"points": batch[k:k + 256]})[z_i_index]
-                                          for k in range(0, len(batch), 256)]))
-        z[name] = np.mean(copies, axis=0)
+            outputs = [session.run(None, {"points": batch[k:k + 256]}) for k in range(0, len(batch), 256)]
+            copies.append(np.concatenate([o[z_i_index] for o in outputs]))
+            pose_copies.append(np.concatenate([o[z_e_index] for o in outputs]))
+        z[name], z_e[name] = np.mean(copies, axis=0), np.mean(pose_copies, axis=0)
     print(f"{args.states}: {len(rows)} frames (every {args.every}), bundle {args.bundle}, "
           f"{args.yaw_copies} yaw copies")
     print(f"{'stream':16s} {'family':10s} {'within':>8s} {'between':>8s} {'ratio':>6s} {'found':>6s}")
@@ -245,6 +293,12 @@ def main():
         for family, (within, between, found, count) in spread(segments_of(keys, values)).items():
             print(f"{name:16s} {family:10s} {within:8.4f} {between:8.4f} {within / between:6.2f} "
                   f"{found:6.2f} (of {count})")
+    theta = [np.array(r["truth"]["theta"]) for r in rows]
+    print("pose retrieval by z_E (as `gdvae-node evaluate`: the true-pose distance to the nearest z_E among the "
+          "family's other subjects over the median; 1 says nothing of the pose; the nearest true pose in brackets)")
+    for name, values in z_e.items():
+        for family, (ratio, floor) in pose_retrieval(keys, values, theta).items():
+            print(f"{name:16s} {family:10s} {ratio:6.2f} ({floor:.2f})")
 
 
 if __name__ == "__main__":

@@ -322,6 +322,9 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         if "bank" not in source and not (continue_ae > 0 or rebuild_bank):
             raise ValueError(f"{init_from}: it has no code bank (an imported bundle?): "
                              "start from its AE with --rebuild-bank or --continue-ae N")
+        if chosen.vae.keep_intrinsic and continue_ae > 0:
+            raise ValueError("keep_intrinsic keeps the source's z_I encoder, which reads its AE's codes: "
+                             "the AE cannot be continued in the same run")
         if continue_ae > 0:
             state = {"stage": "ae", "iteration": source_iterations, "ae": source["ae"]}
             log.info("continuing the AE of %s for %d iterations (new code bank)", init_from, continue_ae)
@@ -333,6 +336,12 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
             log.info("starting from the AE and code bank of %s", init_from)
     else:
         state = {"stage": "ae", "iteration": 0}
+    if chosen.vae.keep_intrinsic and "vae" not in state and "start_vae" not in state:
+        if init_from is None or not ({"vae", "imported_vae"} & source.keys()):
+            raise ValueError("vae.keep_intrinsic keeps a trained VAE's z_I encoder: start from a run (or an imported "
+                             "bundle) that has one, with --init-from")
+        state["start_vae"] = source.get("vae", source.get("imported_vae"))
+        log.info("z_I's encoder, the flow and the rotation branch are %s's, held fixed", init_from)
     train_indices = dataset.indices("train")
     if not train_indices:
         raise ValueError(f"{dataset.root}: no training meshes (check splits.json)")
@@ -372,7 +381,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         pairing = Pairing.from_truths([dataset.items[i].truth for i in train_indices], str(dataset.root))
     if state["stage"] == "bank":
         bank = encode_bank(ae, sampler, spectra[train_indices], chosen, device, pairing)
-        state = {"stage": "vae", "iteration": 0, "bank": bank}
+        state = {"stage": "vae", "iteration": 0, "bank": bank,
+                 **({"start_vae": state["start_vae"]} if "start_vae" in state else {})}
         save(state)
     if stop_after == "bank":
         return {"ae": ae}
@@ -385,7 +395,10 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if "vae" in state:
         vae.load_state_dict(state["vae"])
     else:
-        vae.flow.input.fit(bank["spectrum"])
+        if "start_vae" in state:  # keep_intrinsic: the source's VAE, its flow's input scaling included
+            vae.load_state_dict(state["start_vae"])
+        else:
+            vae.flow.input.fit(bank["spectrum"])
         vae.code_norm.fill_(float(bank["x_c"].pow(2).sum(-1).mean()))
     vae.to(device)
     if state["stage"] == "vae":
@@ -601,7 +614,7 @@ def bank_batch(size: int, batch: int, copies: int, paired: bool, generator: torc
 
 def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, device=None, budget_seconds=None,
               stages=None) -> None:
-    optimizer = torch.optim.Adam(vae.parameters(), lr=chosen.vae_learning_rate, weight_decay=chosen.vae_weight_decay,
+    optimizer = torch.optim.Adam(vae.trained_parameters(), lr=chosen.vae_learning_rate, weight_decay=chosen.vae_weight_decay,
                                  fused=fused_adam(device))
     schedule = Plateau(optimizer, chosen.vae_min_learning_rate)
     if "optimizer" in state:
@@ -639,7 +652,7 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
                           dataset_size=size, beta_scale=beta_scale, paired=paired)
         optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
-        torch.nn.utils.clip_grad_norm_(vae.parameters(), 100.0)
+        torch.nn.utils.clip_grad_norm_(vae.trained_parameters(), 100.0)
         optimizer.step()
         schedule.step(losses.parts.tensor("total"))
         progress.update(iteration + 1, lambda: {**losses.parts, "lr": optimizer.param_groups[0]["lr"]},

@@ -92,6 +92,11 @@ class VAEConfig:
     # the view's own code. The view's code also holds what the camera saw of the mesh; asked to
     # reproduce it, the decoder makes z_E carry the view, since z_I is held to the subject.
     reconstruct_canonical: bool = False
+    # Not in the paper: z_I's encoder, the spectral flow and the rotation branch keep the weights
+    # the VAE starts with (another run's or an imported bundle's VAE, `train --init-from`); only
+    # z_E's encoder and the shape decoder train. A live pose code is then added to a model whose
+    # shape code, and so the node's identity, stays exactly what it was.
+    keep_intrinsic: bool = False
 
     @property
     def paired(self) -> bool:
@@ -118,6 +123,9 @@ class VAEConfig:
             raise ValueError(f"covariance_form must be 'covariance', 'correlation' or 'off', got {self.covariance_form!r}")
         if not self.omega_view >= 0:
             raise ValueError(f"omega_view must be >= 0 (0: off), got {self.omega_view}")
+        if self.keep_intrinsic and self.regime == "gdvae++":
+            raise ValueError("keep_intrinsic holds z_I's encoder fixed, which GDVAE++ decodes only through the flow: "
+                             "use it with the 'fo' or 'paired' regime")
 
     @classmethod
     def flow_only(cls, **overrides) -> "VAEConfig":
@@ -183,6 +191,13 @@ class LatentVAE(nn.Module):
         self.decode_shape = mlp(n_e + n_i, tuple(_w(h, s) for h in (600, 1200, 1600, 2000)), n)
         # E[||x_c||^2] over the training codes, for the normalized reconstruction error.
         self.register_buffer("code_norm", torch.ones(()))
+        if config.keep_intrinsic:
+            for fixed in (self.rotation, self.intrinsic, self.flow, self.decode_rotation):
+                fixed.requires_grad_(False)
+
+    def trained_parameters(self) -> list[nn.Parameter]:
+        """The parameters training updates (all but the fixed branches of `keep_intrinsic`)."""
+        return [p for p in self.parameters() if p.requires_grad]
 
     def encode(self, q, x_c):
         """Posterior means and log-variances: ((mu_R, lv_R), (mu_E, lv_E), (mu_I, lv_I))."""

@@ -186,6 +186,22 @@ def test_a_paired_smoke_run_trains_exports_and_the_node_loads_it(paired_dataset,
     lines = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     vae = [line for line in lines if line["stage"] == "vae"]
     assert vae and vae[-1]["swap"] > 0 and vae[-1]["identity_contrast"] > 0
+    # A live pose code added to a trained VAE: z_I's encoder, the flow and the rotation branch stay
+    # exactly the source's, z_E's encoder and the decoder train.
+    kept = tmp_path / "kept"
+    assert main(["train", str(paired_dataset), "--out", str(kept), "--recipe", "smoke", "--regime", "paired",
+                 "--init-from", str(run), "--set", "recipe.vae_batch=24", "--set", "vae.keep_intrinsic=true",
+                 "--set", "vae.omega_pose_contrast=50"]) == 0
+    before = torch.load(run / "checkpoint.pt", weights_only=False)["vae"]
+    after = torch.load(kept / "checkpoint.pt", weights_only=False)["vae"]
+    for name, value in after.items():
+        same = torch.equal(value, before[name])
+        if name.split(".")[0] in ("intrinsic", "flow", "rotation", "decode_rotation"):
+            assert same, f"{name} was trained"
+        elif name.startswith(("extrinsic.mean", "decode_shape")) and name.endswith("weight"):
+            assert not same, f"{name} did not train"
+    assert main(["train", str(paired_dataset), "--out", str(tmp_path / "fresh"), "--recipe", "smoke",
+                 "--regime", "paired", "--set", "vae.keep_intrinsic=true"]) != 0
     quick = tmp_path / "quick.json"
     assert main(["evaluate", str(run), str(paired_dataset), "--retrieval-only", "--out", str(quick)]) == 0
     paired = json.loads(quick.read_text())["paired_retrieval"]
