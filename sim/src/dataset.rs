@@ -20,6 +20,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::family::{BetaParameter, Family, PoseDraw, PoseMode, Subject, SubjectError};
+use crate::motion::{gait_theta, WALK_WOBBLE};
 use crate::ply::write_ply;
 use crate::seeds;
 use crate::skinning::place;
@@ -44,6 +45,12 @@ pub struct DatasetSpec {
     /// (the ground truth's `pose_id` names the column). Off: every mesh draws its own pose.
     #[serde(default)]
     pub shared_poses: bool,
+    /// Probability that a pose is a walking one, as the sim's `walk` motion poses a subject: the
+    /// gait at a random phase ([`gait_theta`]) plus a drift of `WALK_WOBBLE` times a prior pose. The
+    /// prior alone bends every joint independently, which no animal does; a walk moves a few joints
+    /// together, and a pose code of ten numbers must learn that it is what bodies mostly do.
+    #[serde(default)]
+    pub gait_fraction: f64,
     pub target_vertices: usize,
     pub seed: u64,
 }
@@ -88,6 +95,12 @@ impl DatasetSpec {
             return Err(invalid(
                 "bent-fraction",
                 format!("{} is not in [0, 1]", self.bent_fraction),
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.gait_fraction) {
+            return Err(invalid(
+                "gait-fraction",
+                format!("{} is not in [0, 1]", self.gait_fraction),
             ));
         }
         if self.split.iter().any(|f| !(0.0..=1.0).contains(f)) || (self.split.iter().sum::<f64>() - 1.0).abs() > 1e-6 {
@@ -137,6 +150,9 @@ pub struct GroundTruth {
     /// the same `pose_id` are different subjects in the same pose. Absent otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_id: Option<String>,
+    /// A walking pose's gait phase (cycles, 0..1); absent for a prior pose (`--gait-fraction`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gait_phase: Option<f64>,
     pub seed: u64,
     pub vertices: usize,
     pub triangles: usize,
@@ -152,17 +168,53 @@ pub fn pose_id(family: Family, index: usize) -> String {
 
 /// The pose of column `pose_index` of a family's grid, drawn once for every subject (shared poses):
 /// its own seed, so it does not depend on which subjects are generated.
-pub fn shared_pose(spec: &DatasetSpec, family: Family, pose_index: usize) -> PoseDraw {
+pub fn shared_pose(spec: &DatasetSpec, family: Family, pose_index: usize) -> GridPose {
     let mut rng = seeds::rng(seeds::derive(
         spec.seed,
         &[family as u64, u64::MAX - 1, pose_index as u64],
     ));
-    let mode = if rng.random_bool(spec.bent_fraction) {
-        PoseMode::Bent
-    } else {
-        PoseMode::Gaussian
-    };
-    PoseDraw::sample(family, mode, &mut rng)
+    GridPose::sample(spec, family, &mut rng)
+}
+
+/// One pose draw of a dataset: a prior pose, or with `gait_phase` a walking one whose drift is
+/// the draw. Drawn as before `--gait-fraction` existed when it is 0, so older datasets repeat.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GridPose {
+    pub draw: PoseDraw,
+    pub gait_phase: Option<f64>,
+}
+
+impl GridPose {
+    pub fn sample(spec: &DatasetSpec, family: Family, rng: &mut impl Rng) -> Self {
+        let mode = if rng.random_bool(spec.bent_fraction) {
+            PoseMode::Bent
+        } else {
+            PoseMode::Gaussian
+        };
+        let draw = PoseDraw::sample(family, mode, rng);
+        let walking = spec.gait_fraction > 0.0 && rng.random_bool(spec.gait_fraction);
+        let gait_phase = walking.then(|| rng.random_range(0.0..1.0));
+        // A walking pose drifts by the sigma-0.2 prior, as the `walk` motion does.
+        let draw = if walking {
+            PoseDraw {
+                mode: PoseMode::Gaussian,
+                ..draw
+            }
+        } else {
+            draw
+        };
+        Self { draw, gait_phase }
+    }
+
+    /// `subject`'s joint angles in this pose.
+    pub fn theta(&self, subject: &Subject) -> Vec<f64> {
+        let mut theta = subject.theta_of(&self.draw);
+        if let Some(phase) = self.gait_phase {
+            let gait = gait_theta(&subject.skeleton, subject.family, phase);
+            theta.iter_mut().zip(gait).for_each(|(t, g)| *t = WALK_WOBBLE * *t + g);
+        }
+        theta
+    }
 }
 
 /// Assigns each subject index of a family to a split (a seeded shuffle, then the fractions).
@@ -263,7 +315,7 @@ pub fn write_dataset(
         })
         .collect();
 
-    let shared_poses: std::collections::HashMap<Family, Vec<PoseDraw>> = spec
+    let shared_poses: std::collections::HashMap<Family, Vec<GridPose>> = spec
         .families
         .iter()
         .filter(|_| spec.shared_poses)
@@ -291,17 +343,14 @@ pub fn write_dataset(
             for pose_index in 0..spec.poses_per_subject {
                 let seed = seeds::derive(spec.seed, &[family as u64, index as u64, pose_index as u64]);
                 let mut rng = seeds::rng(seed);
-                let (pose_mode, theta) = if spec.shared_poses {
-                    let draw = &shared_poses[&family][pose_index];
-                    (draw.mode, subject.theta_of(draw))
+                let drawn;
+                let pose = if spec.shared_poses {
+                    &shared_poses[&family][pose_index]
                 } else {
-                    let pose_mode = if rng.random_bool(spec.bent_fraction) {
-                        PoseMode::Bent
-                    } else {
-                        PoseMode::Gaussian
-                    };
-                    (pose_mode, subject.sample_theta(pose_mode, &mut rng))
+                    drawn = GridPose::sample(spec, family, &mut rng);
+                    &drawn
                 };
+                let (pose_mode, theta, gait_phase) = (pose.draw.mode, pose.theta(&subject), pose.gait_phase);
                 let yaw = if spec.random_yaw {
                     rng.random_range(-std::f64::consts::PI..std::f64::consts::PI)
                 } else {
@@ -335,6 +384,7 @@ pub fn write_dataset(
                         theta,
                         yaw,
                         pose_id: spec.shared_poses.then(|| pose_id(family, pose_index)),
+                        gait_phase,
                         seed,
                         vertices: mesh.positions.len(),
                         triangles: mesh.triangles.len(),

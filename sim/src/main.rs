@@ -279,6 +279,10 @@ enum Command {
         /// grid; the ground truth's `pose_id` names the pose), for supervised training.
         #[arg(long)]
         shared_poses: bool,
+        /// Fraction of poses that are walking ones, as the sim's walk poses a subject (the gait at a
+        /// random phase plus a small prior drift; `gait_phase` in the ground truth)
+        #[arg(long, default_value_t = 0.0)]
+        gait_fraction: f64,
         /// Vertices per mesh (the decimation target).
         #[arg(long, default_value_t = DEFAULT_VERTEX_COUNT)]
         vertices: usize,
@@ -483,6 +487,7 @@ fn run(command: Command) -> Result<()> {
             split,
             random_yaw,
             shared_poses,
+            gait_fraction,
             vertices,
             seed,
         } => {
@@ -497,6 +502,7 @@ fn run(command: Command) -> Result<()> {
                 split: [train, validation, test],
                 random_yaw,
                 shared_poses,
+                gait_fraction,
                 target_vertices: vertices,
                 seed,
             };

@@ -379,6 +379,10 @@ fn stride_length(subject: &Subject) -> f64 {
     (1.5 * hip_height).max(0.2)
 }
 
+/// A walking subject's pose drift, as a share of the pose prior's: the gait carries most of the
+/// pose, the drift keeps no two cycles alike (`sim dataset --gait-fraction` draws poses the same way).
+pub const WALK_WOBBLE: f64 = 0.35;
+
 /// Slow random pose drift: a few prior poses blended by sinusoids of random frequency and phase.
 struct Wobble {
     poses: Vec<Vec<f64>>,
@@ -391,7 +395,7 @@ impl Wobble {
 
     fn sample(subject: &Subject, kind: MotionKind, rng: &mut impl Rng) -> Self {
         // Walking adds a small drift on top of the gait; idling is all drift, at the prior's scale.
-        let scale = if kind.walks() { 0.35 } else { 1.0 };
+        let scale = if kind.walks() { WALK_WOBBLE } else { 1.0 };
         let poses = (0..Self::COMPONENTS)
             .map(|_| {
                 let theta = subject.sample_theta(PoseMode::Gaussian, rng);

@@ -119,6 +119,39 @@ fn theta_gap(a: &[f64], b: &[f64]) -> f64 {
 }
 
 #[test]
+fn gait_poses_are_the_walk_at_a_shared_phase_plus_a_small_drift() {
+    use gdvae_sim::motion::{gait_theta, WALK_WOBBLE};
+    let dir = tempfile::tempdir().unwrap();
+    let mut spec = small_spec(32);
+    spec.subjects_per_family = 2;
+    spec.poses_per_subject = 8;
+    spec.shared_poses = true;
+    spec.gait_fraction = 0.5;
+    write_small(&spec, dir.path());
+    let truth = read_truth(dir.path());
+    let walking = truth.iter().filter(|r| r.gait_phase.is_some()).count();
+    assert!(walking > 0 && walking < truth.len(), "{walking} of {} walking", truth.len());
+    for record in &truth {
+        let subject = Subject::with_vertex_count(record.family, record.beta.clone(), spec.target_vertices).unwrap();
+        let pose = shared_pose(&spec, record.family, record.pose_index);
+        assert_eq!(record.gait_phase, pose.gait_phase, "one phase per column");
+        let Some(phase) = record.gait_phase else {
+            assert_eq!(record.theta, subject.theta_of(&pose.draw));
+            continue;
+        };
+        // theta = the gait at the column's phase + WALK_WOBBLE x this subject's reading of the draw.
+        let gait = gait_theta(&subject.skeleton, record.family, phase);
+        let drift = subject.theta_of(&pose.draw);
+        for ((t, g), d) in record.theta.iter().zip(&gait).zip(&drift) {
+            assert!((t - (g + WALK_WOBBLE * d)).abs() < 1e-9, "{}", record.file);
+        }
+        assert!(gait.iter().any(|g| g.abs() > 0.1), "a gait moves joints");
+    }
+    spec.gait_fraction = 1.5;
+    assert!(spec.validate().is_err());
+}
+
+#[test]
 fn shared_poses_make_a_grid_of_subjects_by_poses() {
     let (dir, unpaired) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     let mut spec = small_spec(31);
@@ -143,8 +176,9 @@ fn shared_poses_make_a_grid_of_subjects_by_poses() {
             Subject::with_vertex_count(record.family, record.beta.clone(), spec.target_vertices).unwrap()
         });
         let draw = shared_pose(&spec, record.family, record.pose_index);
-        assert_eq!(record.pose_mode, draw.mode);
-        assert_eq!(record.theta, subject.theta_of(&draw), "{}", record.file);
+        assert_eq!(record.pose_mode, draw.draw.mode);
+        assert_eq!(record.theta, draw.theta(subject), "{}", record.file);
+        assert_eq!((record.gait_phase, draw.gait_phase), (None, None), "no walking poses unless asked");
         columns.entry(pose_id).or_default().push(record);
     }
     assert_eq!(columns.len(), 2 * spec.poses_per_subject);

@@ -41,6 +41,7 @@ pub fn small_spec(seed: u64) -> DatasetSpec {
         split: [0.5, 0.25, 0.25],
         random_yaw: true,
         shared_poses: false,
+        gait_fraction: 0.0,
         target_vertices: 2000,
         seed,
     }
