@@ -240,6 +240,13 @@ def export_command(args) -> int:
                 "bank_partial_views": chosen.bank_view_share()}
     training.update(trained_iterations(Path(args.run), chosen))
     calibration = None
+    if args.calibrate and args.calibration_from:
+        raise ValueError("--calibrate measures a calibration, --calibration-from takes one: give one of them")
+    if args.calibration_from:
+        from .export import calibration_kept_from
+
+        calibration = calibration_kept_from(ae, vae, Path(args.calibration_from))
+        log.info("z_I variance calibration x %.4g, from %s", calibration["z_I_variance_scale"], args.calibration_from)
     if args.calibrate:
         from .data import load_dataset
         from .evaluate import z_i_variance_calibration
@@ -398,6 +405,9 @@ def main(argv=None) -> int:
     export.add_argument("--calibrate", metavar="DATASET",
                         help="measure z_I's variance calibration on DATASET's held-out subjects (the node's "
                              "tracker scales the encoder's variances by it); without it the bundle has none (1)")
+    export.add_argument("--calibration-from", metavar="BUNDLE",
+                        help="take the z_I variance calibration of BUNDLE, whose z_I encoder this run kept "
+                             "(vae.keep_intrinsic; checked on the two encoders' outputs)")
     export.set_defaults(handler=export_command)
 
     benchmark = commands.add_parser(

@@ -147,6 +147,30 @@ def parity(ae, vae, folder: Path) -> float:
     return worst
 
 
+def calibration_kept_from(ae, vae, bundle: Path) -> dict:
+    """The z_I variance calibration of `bundle`, for a model that kept its z_I encoder
+    (`vae.keep_intrinsic`): checked by running both encoders on the same clouds, since a z_I that
+    differs in any way needs its own calibration (`--calibrate`)."""
+    import onnxruntime as ort
+
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    calibration = manifest.get("calibration")
+    if not calibration:
+        raise ValueError(f"{bundle}: its manifest has no calibration to take")
+    points = example_inputs(ae, vae, batch=4)[0]
+    session = ort.InferenceSession(str(bundle / "encoder.onnx"), providers=["CPUExecutionProvider"])
+    theirs = dict(zip((o.name for o in session.get_outputs()), session.run(None, {"points": points.numpy()})))
+    with torch.no_grad():
+        ours = dict(zip(ENCODER_OUTPUTS, EncoderGraph(ae, vae).eval()(points)))
+    for name in (n for n in ENCODER_OUTPUTS if n.startswith("z_I")):
+        gap = float(np.abs(theirs[name] - ours[name].numpy()).max())
+        if gap > 1e-4:
+            raise ValueError(f"{bundle}: its {name} differs from this model's by {gap:.3g}: the calibration "
+                             "belongs to another z_I encoder (measure this one's with --calibrate)")
+    return {**calibration, "measured_on": f"{calibration['measured_on']} (taken from {bundle}, whose z_I "
+                                          "encoder this model keeps)"}
+
+
 def write_bundle(ae, vae, folder: str | Path, *, scale: float, recipe_name: str, training: dict,
                  metrics: dict | None, calibration: dict | None = None) -> dict:
     folder = Path(folder)

@@ -215,6 +215,14 @@ def test_a_paired_smoke_run_trains_exports_and_the_node_loads_it(paired_dataset,
     # A run trained on depth-camera views is calibrated on them: what the node's tracker sees.
     assert "depth-camera view" in manifest["calibration"]["measured_on"]
     assert manifest["calibration"]["z_I_variance_scale"] > 0
+    # The run that kept z_I's encoder may take that bundle's calibration (checked on both encoders).
+    kept_bundle = tmp_path / "kept-bundle"
+    assert main(["export", str(kept), "--out", str(kept_bundle), "--calibration-from", str(bundle)]) == 0
+    taken = json.loads((kept_bundle / "manifest.json").read_text())["calibration"]
+    assert taken["z_I_variance_scale"] == manifest["calibration"]["z_I_variance_scale"]
+    assert str(bundle) in taken["measured_on"]
+    assert main(["export", str(kept), "--out", str(tmp_path / "both"), "--calibration-from", str(bundle),
+                 "--calibrate", str(paired_dataset)]) != 0
     node = ROOT / "target" / "release" / "gdvae-node"
     if not node.exists():
         pytest.skip("target/release/gdvae-node is not built (make binaries)")
