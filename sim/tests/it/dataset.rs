@@ -130,7 +130,11 @@ fn gait_poses_are_the_walk_at_a_shared_phase_plus_a_small_drift() {
     write_small(&spec, dir.path());
     let truth = read_truth(dir.path());
     let walking = truth.iter().filter(|r| r.gait_phase.is_some()).count();
-    assert!(walking > 0 && walking < truth.len(), "{walking} of {} walking", truth.len());
+    assert!(
+        walking > 0 && walking < truth.len(),
+        "{walking} of {} walking",
+        truth.len()
+    );
     for record in &truth {
         let subject = Subject::with_vertex_count(record.family, record.beta.clone(), spec.target_vertices).unwrap();
         let pose = shared_pose(&spec, record.family, record.pose_index);
@@ -178,7 +182,11 @@ fn shared_poses_make_a_grid_of_subjects_by_poses() {
         let draw = shared_pose(&spec, record.family, record.pose_index);
         assert_eq!(record.pose_mode, draw.draw.mode);
         assert_eq!(record.theta, draw.theta(subject), "{}", record.file);
-        assert_eq!((record.gait_phase, draw.gait_phase), (None, None), "no walking poses unless asked");
+        assert_eq!(
+            (record.gait_phase, draw.gait_phase),
+            (None, None),
+            "no walking poses unless asked"
+        );
         columns.entry(pose_id).or_default().push(record);
     }
     assert_eq!(columns.len(), 2 * spec.poses_per_subject);
