@@ -334,14 +334,14 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         else:
             state = {"stage": "vae", "iteration": 0, "ae": source["ae"], "bank": source["bank"]}
             log.info("starting from the AE and code bank of %s", init_from)
+        if chosen.vae.keep_intrinsic and {"vae", "imported_vae"} & source.keys():
+            state["start_vae"] = source.get("vae", source.get("imported_vae"))
+            log.info("z_I's encoder, the flow and the rotation branch are %s's, held fixed", init_from)
     else:
         state = {"stage": "ae", "iteration": 0}
     if chosen.vae.keep_intrinsic and "vae" not in state and "start_vae" not in state:
-        if init_from is None or not ({"vae", "imported_vae"} & source.keys()):
-            raise ValueError("vae.keep_intrinsic keeps a trained VAE's z_I encoder: start from a run (or an imported "
-                             "bundle) that has one, with --init-from")
-        state["start_vae"] = source.get("vae", source.get("imported_vae"))
-        log.info("z_I's encoder, the flow and the rotation branch are %s's, held fixed", init_from)
+        raise ValueError("vae.keep_intrinsic keeps a trained VAE's z_I encoder: start from a run (or an imported "
+                         "bundle) that has one, with --init-from")
     train_indices = dataset.indices("train")
     if not train_indices:
         raise ValueError(f"{dataset.root}: no training meshes (check splits.json)")
