@@ -48,6 +48,7 @@ sys.path.insert(0, str(ROOT / "models"))
 from gdvae.data import DepthCamera, read_mesh, sample_surface  # noqa: E402
 from gdvae.surface import MeshCache, depth_camera_views  # noqa: E402
 from python_reference import decode_xyz, largest_cluster  # noqa: E402
+from pose_probes import retrieval_ratio  # noqa: E402
 from python_reference import farthest_point_sampling as farthest_points  # noqa: E402
 
 W = 10
@@ -115,27 +116,14 @@ def spread(segments):
 
 
 def pose_retrieval(keys, codes, theta):
-    """Per family: the median over frames of the true-pose distance to the frame of another subject
-    whose code is nearest, over the median true-pose distance to all of them; and the same with the
-    nearest true pose (the floor)."""
+    """Per family: (`pose_probes.retrieval_ratio` of the codes, the same of the true poses: the floor)."""
     out = {}
     for family in sorted({k[2] for k in keys}):
         mine = np.array([k[2] == family for k in keys])
-        subjects = np.array([k[1] for k in keys])
-        poses = np.zeros((len(keys), max(len(t) for t, m in zip(theta, mine) if m)))
-        poses[mine] = np.stack([t for t, m in zip(theta, mine) if m])  # one joint layout per family
-        ratios, floors = [], []
-        for i in np.nonzero(mine)[0]:
-            others = np.nonzero(mine & (subjects != subjects[i]))[0]
-            if len(others) == 0:
-                continue
-            truth = np.linalg.norm(poses[others] - poses[i], axis=1)
-            median = np.median(truth)
-            if median > 0:
-                ratios.append(truth[np.argmin(np.linalg.norm(codes[others] - codes[i], axis=1))] / median)
-                floors.append(truth.min() / median)
-        if ratios:
-            out[family] = (np.median(ratios), np.median(floors))
+        subjects = np.array([k[1] for k in keys])[mine]
+        poses = np.stack([t for t, m in zip(theta, mine) if m])  # one joint layout per family
+        if len(set(subjects)) > 1:
+            out[family] = (retrieval_ratio(codes[mine], poses, subjects), retrieval_ratio(poses, poses, subjects))
     return out
 
 

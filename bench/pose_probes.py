@@ -42,15 +42,14 @@ class Views:
     """Depth-camera views of a dataset split's meshes in a run's units, `copies` per mesh (a random
     direction and yaw each), with each view's ground truth."""
 
-    def __init__(self, run: str, data: str, split: str, copies: int, seed: int, walking_only: bool = False):
+    def __init__(self, run: str, points: int, data: str, split: str, copies: int, seed: int):
         dataset = load_dataset(data)
         use_model_units(dataset, json.loads((Path(run) / "dataset.json").read_text())["scale"])
-        indices = [i for i in dataset.indices(split)
-                   if not walking_only or dataset.items[i].truth.get("gait_phase") is not None]
+        indices = dataset.indices(split)
         if not indices:
-            raise SystemExit(f"{data}: no {'walking ' if walking_only else ''}meshes in its {split!r} split")
+            raise SystemExit(f"{data}: no meshes in its {split!r} split")
         self.generator = torch.Generator().manual_seed(seed)
-        self.sampler = PointSampler(dataset, indices, load_run(run)[1].config.points, seed, DepthCamera(), "cpu")
+        self.sampler = PointSampler(dataset, indices, points, seed, DepthCamera(), "cpu")
         self.meshes = torch.arange(len(indices)).repeat(copies)
         self.truth = [dataset.items[indices[m]].truth for m in self.meshes.tolist()]
         self.family = np.array([FAMILIES.index(t["family"]) for t in self.truth])
@@ -89,7 +88,7 @@ def r2(predicted, target) -> float:
 
 def retrieval(args) -> None:
     _, ae, vae, _ = load_run(args.run)
-    views = Views(args.run, args.test, "test", 1, args.seed)
+    views = Views(args.run, ae.config.points, args.test, "test", 1, args.seed)
     mu_e = views.codes(ae, vae)["mu_E"]
     walking = np.array([t.get("gait_phase") is not None for t in views.truth])
     for f, family in enumerate(FAMILIES):
@@ -103,7 +102,9 @@ def retrieval(args) -> None:
 
 def probe(args) -> None:
     _, ae, vae, _ = load_run(args.run)
-    fit, test = Views(args.run, args.fit, "train", 2, args.seed), Views(args.run, args.test, "test", 1, args.seed + 1)
+    points = ae.config.points
+    fit = Views(args.run, points, args.fit, "train", 2, args.seed)
+    test = Views(args.run, points, args.test, "test", 1, args.seed + 1)
     fit_codes, test_codes = fit.codes(ae, vae), test.codes(ae, vae)
     for f, family in enumerate(FAMILIES):
         for key in ("mu_E", "x_c"):
@@ -146,7 +147,9 @@ def phase_probe(family, key, fit, test, fit_codes, test_codes, f) -> None:
 
 def encoder(args) -> None:
     _, ae, _, _ = load_run(args.run)
-    fit, test = Views(args.run, args.fit, "train", 1, args.seed), Views(args.run, args.test, "test", 1, args.seed + 1)
+    points = ae.config.points
+    fit = Views(args.run, points, args.fit, "train", 1, args.seed)
+    test = Views(args.run, points, args.test, "test", 1, args.seed + 1)
     components = {}
     for f, family in enumerate(FAMILIES):
         theta = fit.theta(f)
