@@ -1,7 +1,9 @@
 //! Geometric clean-up of a frame before subsampling: the sensor-to-gravity transform, a
-//! region-of-interest crop, the ground plane (RANSAC: to level the cloud and/or remove the ground)
-//! outlier removal (statistical or radius, on a kiddo KD-tree) and the largest Euclidean cluster
-//! (on a grid of cells, union-find).
+//! region-of-interest crop, the ground plane (RANSAC: to level the cloud and/or remove the ground),
+//! the voxel grid, outlier removal (statistical or radius, on a kiddo KD-tree) and the largest
+//! Euclidean cluster (on a grid of cells, union-find). The voxel grid and the clusters look cells
+//! up in an occupancy bitmap (`occupancy.rs`) where the cloud's box is small enough, as a frame's
+//! after the crop is; a hash map and sorted cell keys beyond.
 
 use std::num::NonZeroUsize;
 
@@ -10,6 +12,7 @@ use nalgebra::{Matrix3, Rotation3, Unit as UnitVector, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use super::occupancy::Occupancy;
 use super::settings::{OutlierMethod, OutlierSettings};
 
 /// x' = R x + t for every point.
@@ -70,16 +73,12 @@ pub fn voxel_grid(points: &mut Vec<[f32; 3]>, edge: f32) -> usize {
     if points.iter().flatten().any(|c| !((c / edge).abs() < LIMIT)) {
         return 0;
     }
-    let mut slot: CellMap = CellMap::default();
-    slot.reserve(points.len());
+    let cells: Vec<[i64; 3]> = points.iter().map(|p| p.map(|c| floor(c / edge))).collect();
     // Per cube: the sum of its points (relative to the first, to keep the rounding small) and how
-    // many there are.
+    // many there are, in the order the cubes are first met.
     let mut sums: Vec<([f32; 3], [f32; 3], u32)> = Vec::with_capacity(points.len());
-    for p in points.iter() {
-        let key = p.map(|c| floor(c / edge));
-        let next = sums.len();
-        let at = *slot.entry(key).or_insert(next);
-        if at == next {
+    let mut add = |at: usize, p: &[f32; 3]| {
+        if at == sums.len() {
             sums.push((*p, [0.0; 3], 1));
         } else {
             let (first, sum, n) = &mut sums[at];
@@ -87,6 +86,30 @@ pub fn voxel_grid(points: &mut Vec<[f32; 3]>, edge: f32) -> usize {
                 sum[a] += p[a] - first[a];
             }
             *n += 1;
+        }
+    };
+    match Occupancy::of(&cells) {
+        // Each occupied cube's place among the cubes in grid order (its rank), then its slot.
+        Some(grid) => {
+            let mut slot = vec![u32::MAX; grid.occupied()];
+            let mut next = 0;
+            for (p, k) in points.iter().zip(&cells) {
+                let rank = grid.rank(grid.position(*k)) as usize;
+                if slot[rank] == u32::MAX {
+                    slot[rank] = next;
+                    next += 1;
+                }
+                add(slot[rank] as usize, p);
+            }
+        }
+        // A cloud spread over too large a box for a bitmap: the cubes in a hash map.
+        None => {
+            let mut slot: CellMap = CellMap::default();
+            slot.reserve(points.len());
+            for (p, k) in points.iter().zip(&cells) {
+                let next = slot.len();
+                add(*slot.entry(*k).or_insert(next), p);
+            }
         }
     }
     let before = points.len();
@@ -437,6 +460,9 @@ impl CellKey for u128 {
 /// Each point's cluster (numbered 0.. in the order of each cluster's lowest point index) and the
 /// number of clusters, given each point's cell.
 fn components(points: &[[f32; 3]], cells: &[[i64; 3]], radius_squared: f32) -> (Vec<u32>, usize) {
+    if let Some(grid) = Occupancy::of(cells) {
+        return components_on_grid(points, cells, &grid, radius_squared);
+    }
     // Every cell's coordinates from the lowest corner (plus 2, so that a neighbour two cells lower
     // is >= 0), with room for a neighbour two cells higher.
     let low = cells
@@ -452,6 +478,159 @@ fn components(points: &[[f32; 3]], cells: &[[i64; 3]], radius_squared: f32) -> (
     }
 }
 
+/// The cells of a cloud in grid order, each with its points, joined into clusters (union-find)
+/// where two hold a pair of points within the radius.
+struct Joined<'a> {
+    points: &'a [[f32; 3]],
+    /// Cell a holds the points `members[start[a]..start[a + 1]]`, in cloud order.
+    members: Vec<u32>,
+    start: Vec<u32>,
+    parent: Vec<u32>,
+    radius_squared: f32,
+}
+
+impl Joined<'_> {
+    fn root(&mut self, mut a: u32) -> u32 {
+        while self.parent[a as usize] != a {
+            self.parent[a as usize] = self.parent[self.parent[a as usize] as usize];
+            a = self.parent[a as usize];
+        }
+        a
+    }
+
+    fn members(&self, a: u32) -> &[u32] {
+        &self.members[self.start[a as usize] as usize..self.start[a as usize + 1] as usize]
+    }
+
+    /// Whether cells a and c hold a pair of points within the radius.
+    fn near(&self, a: u32, c: u32) -> bool {
+        self.members(a).iter().any(|&i| {
+            let p = self.points[i as usize];
+            self.members(c).iter().any(|&j| {
+                let q = self.points[j as usize];
+                (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2) <= self.radius_squared
+            })
+        })
+    }
+
+    /// Joins cell c to a, whose root is `ra` (u32::MAX: not looked up yet), when they are apart and
+    /// near; returns a's root.
+    fn join(&mut self, a: u32, ra: u32, c: u32) -> u32 {
+        let ra = if ra == u32::MAX { self.root(a) } else { ra };
+        let rc = self.root(c);
+        if ra != rc && self.near(a, c) {
+            self.parent[ra.max(rc) as usize] = ra.min(rc);
+            return ra.min(rc);
+        }
+        ra
+    }
+
+    /// Each point's cluster, numbered by first appearance in cloud order, and the count.
+    fn labels(mut self) -> (Vec<u32>, usize) {
+        let cells = self.parent.len() as u32;
+        let mut cell_of = vec![0u32; self.points.len()];
+        for a in 0..cells {
+            let r = self.root(a);
+            for &i in self.members(a) {
+                cell_of[i as usize] = r;
+            }
+        }
+        let mut number = vec![u32::MAX; cells as usize];
+        let mut count = 0u32;
+        let labels = cell_of
+            .iter()
+            .map(|&r| {
+                if number[r as usize] == u32::MAX {
+                    number[r as usize] = count;
+                    count += 1;
+                }
+                number[r as usize]
+            })
+            .collect();
+        (labels, count as usize)
+    }
+}
+
+/// [`components`] with the cells looked up in an occupancy bitmap. Cells up to two apart along
+/// each axis can hold points within the radius (the 5 x 5 x 5 around a cell). First those one
+/// apart, which join most cells: for each cell the 13 of its 3 x 3 x 3 after it in grid order, as
+/// rows (dx, dy) of cells dz apart (a few bits of the bitmap each). Then those two apart, only
+/// where they can still join two clusters: one of the pair outside the largest cluster found so
+/// far (two cells in it are joined already), so from the cells outside it, in both directions
+/// (on a frame, the few hundred stray points around the object).
+fn components_on_grid(
+    points: &[[f32; 3]],
+    cells: &[[i64; 3]],
+    grid: &Occupancy,
+    radius_squared: f32,
+) -> (Vec<u32>, usize) {
+    // Each point's cell (its rank in grid order), then the points by cell (a counting sort, which
+    // keeps cloud order within a cell), and each cell's place in the bitmap.
+    let at: Vec<usize> = cells.iter().map(|k| grid.position(*k)).collect();
+    let cell_of: Vec<u32> = at.iter().map(|&p| grid.rank(p)).collect();
+    let count = grid.occupied();
+    let mut start = vec![0u32; count + 1];
+    cell_of.iter().for_each(|&c| start[c as usize + 1] += 1);
+    for c in 0..count {
+        start[c + 1] += start[c];
+    }
+    let mut fill = start.clone();
+    let mut members = vec![0u32; points.len()];
+    let mut place = vec![0usize; count];
+    for (i, &c) in cell_of.iter().enumerate() {
+        members[fill[c as usize] as usize] = i as u32;
+        fill[c as usize] += 1;
+        place[c as usize] = at[i];
+    }
+    let mut joined = Joined {
+        points,
+        members,
+        start,
+        parent: (0..count as u32).collect(),
+        radius_squared,
+    };
+    let [sx, sy, _] = grid.strides();
+    // Joins cell a with the occupied cells among `mask` of the cells from `from` on along z.
+    let join_window = |joined: &mut Joined, a: usize, from: usize, mask: u64| {
+        let mut bits = grid.window(from, 5) & mask;
+        let mut ra = u32::MAX;
+        while bits != 0 {
+            let c = grid.rank(from + bits.trailing_zeros() as usize);
+            ra = joined.join(a as u32, ra, c);
+            bits &= bits - 1;
+        }
+    };
+    // Rows (dx, dy) with the cells dz = -2..=2 along them as bits 0..5.
+    let row = |a: usize, dx: isize, dy: isize| (place[a] as isize + dx * sx + dy * sy - 2) as usize;
+    const ABOVE_ONE: u64 = 0b01000;
+    const WITHIN_ONE: u64 = 0b01110;
+    const TWO_APART: u64 = 0b10001;
+    const WITHIN_TWO: u64 = 0b11111;
+    for a in 0..count {
+        join_window(&mut joined, a, row(a, 0, 0), ABOVE_ONE);
+        for [dx, dy] in [[0, 1], [1, -1], [1, 0], [1, 1]] {
+            join_window(&mut joined, a, row(a, dx, dy), WITHIN_ONE);
+        }
+    }
+    let roots: Vec<u32> = (0..count as u32).map(|a| joined.root(a)).collect();
+    let mut size = vec![0u32; count];
+    roots.iter().for_each(|&r| size[r as usize] += 1);
+    let largest = (0..count).max_by_key(|&r| size[r]).unwrap_or(0) as u32;
+    for a in (0..count).filter(|&a| roots[a] != largest) {
+        for dx in -2..=2isize {
+            for dy in -2..=2isize {
+                let mask = if dx.abs() == 2 || dy.abs() == 2 {
+                    WITHIN_TWO
+                } else {
+                    TWO_APART
+                };
+                join_window(&mut joined, a, row(a, dx, dy), mask);
+            }
+        }
+    }
+    joined.labels()
+}
+
 fn components_keyed<K: CellKey>(
     points: &[[f32; 3]],
     cells: &[[i64; 3]],
@@ -463,38 +642,24 @@ fn components_keyed<K: CellKey>(
     let mut order: Vec<(K, u32)> = cells.iter().enumerate().map(|(i, k)| (pack(k), i as u32)).collect();
     order.sort_unstable();
     let mut keys: Vec<K> = Vec::new();
-    let mut start: Vec<usize> = Vec::new();
+    let mut start: Vec<u32> = Vec::new();
     for (at, (key, _)) in order.iter().enumerate() {
         if keys.last() != Some(key) {
             keys.push(*key);
-            start.push(at);
+            start.push(at as u32);
         }
     }
-    start.push(order.len());
-    let members = |a: usize| order[start[a]..start[a + 1]].iter().map(|(_, i)| *i as usize);
-    let mut parent: Vec<usize> = (0..keys.len()).collect();
-    fn root(parent: &mut [usize], mut i: usize) -> usize {
-        while parent[i] != i {
-            parent[i] = parent[parent[i]];
-            i = parent[i];
-        }
-        i
-    }
-    // Whether cells a and b hold a pair of points within `radius`.
-    let near = |a: usize, b: usize| {
-        members(a).any(|i| {
-            let p = points[i];
-            members(b).any(|j| {
-                let q = points[j];
-                (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2) <= radius_squared
-            })
-        })
+    start.push(order.len() as u32);
+    let mut joined = Joined {
+        points,
+        members: order.iter().map(|(_, i)| *i).collect(),
+        start,
+        parent: (0..keys.len() as u32).collect(),
+        radius_squared,
     };
-    // Cells up to two apart along each axis can hold points within `radius`: of the 5 x 5 x 5
-    // around a cell, the half after it in grid order, walked as rows (dx, dy) of cells dz apart.
-    // The nearest (up to one apart) first: they join most cells before the farther ones need a
-    // pair search. For one row, the cells' neighbours come in the same order as the cells, so one
-    // walk along the sorted keys finds them all.
+    // Of the 5 x 5 x 5 around a cell, the half after it in grid order, walked as rows (dx, dy) of
+    // cells dz apart, the nearest (up to one apart) first. For one row, the cells' neighbours come
+    // in the same order as the cells, so one walk along the sorted keys finds them all.
     let mut rows: Vec<([i64; 2], i64)> = Vec::new();
     for reach in [1i64, 2] {
         for dx in 0..=reach {
@@ -517,41 +682,77 @@ fn components_keyed<K: CellKey>(
         let mut b = 0;
         for a in 0..keys.len() {
             let (first, last) = (keys[a].shifted([dx, dy, below]), keys[a].shifted([dx, dy, above]));
-            let mut ra = usize::MAX;
+            let mut ra = u32::MAX;
             while b < keys.len() && keys[b] < first {
                 b += 1;
             }
             let mut c = b;
             while c < keys.len() && keys[c] <= last {
                 if !walked || (keys[c].z() - keys[a].z()).abs() == 2 {
-                    if ra == usize::MAX {
-                        ra = root(&mut parent, a);
-                    }
-                    let rc = root(&mut parent, c);
-                    if ra != rc && near(a, c) {
-                        parent[ra.max(rc)] = ra.min(rc);
-                        ra = ra.min(rc);
-                    }
+                    ra = joined.join(a as u32, ra, c as u32);
                 }
                 c += 1;
             }
         }
     }
-    // Each cell's root, then each point's cluster, numbered by first appearance in cloud order.
-    let mut labels = vec![u32::MAX; points.len()];
-    let mut cell_of = vec![0usize; points.len()];
-    for a in 0..keys.len() {
-        let r = root(&mut parent, a);
-        members(a).for_each(|i| cell_of[i] = r);
-    }
-    let mut number = vec![u32::MAX; keys.len()];
-    let mut count = 0u32;
-    for (i, &r) in cell_of.iter().enumerate() {
-        if number[r] == u32::MAX {
-            number[r] = count;
-            count += 1;
+    joined.labels()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// The occupancy bitmap (clouds in a small box) and the sorted cell keys (any box) find the
+    /// same clusters: blobs of every size and spread, some touching, and sparse noise.
+    #[test]
+    fn clusters_on_the_bitmap_are_those_of_the_sorted_keys() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        for case in 0..60 {
+            let mut points: Vec<[f32; 3]> = Vec::new();
+            for _ in 0..rng.random_range(1..6) {
+                let centre: [f32; 3] = std::array::from_fn(|_| rng.random_range(-0.4..0.4));
+                let spread = rng.random_range(0.02..0.2);
+                for _ in 0..rng.random_range(5..400) {
+                    points.push(centre.map(|c| c + rng.random_range(-spread..spread)));
+                }
+            }
+            for _ in 0..rng.random_range(0..200) {
+                points.push(std::array::from_fn(|_| rng.random_range(-0.6..0.6)));
+            }
+            let radius = rng.random_range(0.04..0.12);
+            let cell = radius / 3f32.sqrt();
+            let cells: Vec<[i64; 3]> = points.iter().map(|p| p.map(|c| floor(c / cell))).collect();
+            let grid = Occupancy::of(&cells).expect("a small box");
+            let on_grid = components_on_grid(&points, &cells, &grid, radius * radius);
+            let low = cells
+                .iter()
+                .fold([i64::MAX; 3], |m, k| [0, 1, 2].map(|a| m[a].min(k[a] - 2)));
+            let keyed = components_keyed::<u64>(&points, &cells, low, radius * radius);
+            assert_eq!(on_grid, keyed, "case {case}, radius {radius}");
+            assert!(on_grid.1 >= 1);
         }
-        labels[i] = number[r];
     }
-    (labels, count as usize)
+
+    /// The voxel grid on the bitmap and in a hash map (a cloud spread too far for a bitmap) give
+    /// the same centroids in the same order.
+    #[test]
+    fn the_voxel_grid_is_the_same_on_the_bitmap_and_in_a_hash_map() {
+        let mut rng = ChaCha8Rng::seed_from_u64(10);
+        let mut near: Vec<[f32; 3]> = (0..3000)
+            .map(|_| std::array::from_fn(|_| rng.random_range(-0.5..0.5)))
+            .collect();
+        let far_point = [900.0, 900.0, 900.0];
+        let mut with_far = near.clone();
+        with_far.push(far_point);
+        let cells: Vec<[i64; 3]> = with_far.iter().map(|p| p.map(|c| floor(c / 0.05))).collect();
+        assert!(
+            Occupancy::of(&cells).is_none(),
+            "the far point puts the box beyond a bitmap"
+        );
+        voxel_grid(&mut near, 0.05);
+        voxel_grid(&mut with_far, 0.05);
+        assert_eq!(with_far.pop(), Some(far_point));
+        assert_eq!(near, with_far);
+    }
 }

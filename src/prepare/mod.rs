@@ -9,6 +9,7 @@
 //! sequence number. A frame that ends with too few points is rejected with the reason.
 
 mod filters;
+mod occupancy;
 mod sampling;
 mod settings;
 

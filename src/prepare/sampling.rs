@@ -92,10 +92,15 @@ struct Buckets {
     zs: Vec<f32>,
     index: Vec<u32>,
     nearest: Vec<f32>,
-    /// Per bucket: its range in the arrays, its box, and its farthest point (distance, index).
+    /// Per bucket: its range in the arrays, its box (lowest and highest corner, an array per
+    /// axis), and its farthest point (distance, index), so that the loops over buckets vectorize.
     ranges: Vec<(usize, usize)>,
-    boxes: Vec<([f32; 3], [f32; 3])>,
-    farthest: Vec<(f32, u32)>,
+    low: [Vec<f32>; 3],
+    high: [Vec<f32>; 3],
+    farthest: Vec<f32>,
+    farthest_index: Vec<u32>,
+    /// Per bucket, the squared gap from the latest sample to its box.
+    gap: Vec<f32>,
 }
 
 impl Buckets {
@@ -103,7 +108,7 @@ impl Buckets {
         let mut order: Vec<u32> = (0..points.len() as u32).collect();
         let mut ranges = Vec::with_capacity(2 * points.len() / BUCKET + 1);
         split(points, &mut order, 0, &mut ranges);
-        let boxes = ranges
+        let boxes: Vec<([f32; 3], [f32; 3])> = ranges
             .iter()
             .map(|&(start, end)| bounds(points, &order[start..end]))
             .collect();
@@ -112,20 +117,30 @@ impl Buckets {
             ys: order.iter().map(|&i| points[i as usize][1]).collect(),
             zs: order.iter().map(|&i| points[i as usize][2]).collect(),
             nearest: vec![f32::INFINITY; points.len()],
-            farthest: vec![(f32::INFINITY, 0); ranges.len()],
+            low: [0, 1, 2].map(|a| boxes.iter().map(|(low, _)| low[a]).collect()),
+            high: [0, 1, 2].map(|a| boxes.iter().map(|(_, high)| high[a]).collect()),
+            farthest: vec![f32::INFINITY; ranges.len()],
+            farthest_index: vec![0; ranges.len()],
+            gap: vec![0.0; ranges.len()],
             index: order,
             ranges,
-            boxes,
         }
     }
 
     /// Takes `c` into the chosen set and returns the cloud index of the next farthest point.
     fn add_sample(&mut self, c: [f32; 3]) -> usize {
+        // The squared gap from c to every bucket's box, in one pass that vectorizes.
+        let [lx, ly, lz] = &self.low;
+        let [hx, hy, hz] = &self.high;
+        let boxes = lx.iter().zip(hx).zip(ly.iter().zip(hy)).zip(lz.iter().zip(hz));
+        for (gap, (((lx, hx), (ly, hy)), (lz, hz))) in self.gap.iter_mut().zip(boxes) {
+            let gx = (lx - c[0]).max(c[0] - hx).max(0.0);
+            let gy = (ly - c[1]).max(c[1] - hy).max(0.0);
+            let gz = (lz - c[2]).max(c[2] - hz).max(0.0);
+            *gap = gx * gx + gy * gy + gz * gz;
+        }
         for b in 0..self.ranges.len() {
-            let (low, high) = self.boxes[b];
-            let g = [0, 1, 2].map(|a| (low[a] - c[a]).max(c[a] - high[a]).max(0.0));
-            let gap = g[0] * g[0] + g[1] * g[1] + g[2] * g[2];
-            if gap >= self.farthest[b].0 {
+            if self.gap[b] >= self.farthest[b] {
                 continue;
             }
             let (start, end) = self.ranges[b];
@@ -139,14 +154,16 @@ impl Buckets {
                 let d = (x - c[0]) * (x - c[0]) + (y - c[1]) * (y - c[1]) + (z - c[2]) * (z - c[2]);
                 *n = n.min(d);
             }
-            self.farthest[b] = farthest_in_bucket(nearest, &self.index[start..end]);
+            (self.farthest[b], self.farthest_index[b]) = farthest_in_bucket(nearest, &self.index[start..end]);
         }
-        farthest(self.farthest.iter().copied()).1 as usize
+        farthest_in_bucket(&self.farthest, &self.farthest_index).1 as usize
     }
 }
 
-/// [`farthest`] of one bucket's points, in two passes that vectorize: the largest distance
-/// (distances are >= 0, so their bits order as they do), then the lowest cloud index holding it.
+/// The largest of (distance, cloud index) pairs and, of equal ones, the lowest index (the plain
+/// loop's first): of one bucket's points, or of the buckets' farthest. In two passes that
+/// vectorize: the largest distance (distances are >= 0, so their bits order as they do), then the
+/// lowest cloud index holding it.
 fn farthest_in_bucket(nearest: &[f32], index: &[u32]) -> (f32, u32) {
     let largest = f32::from_bits(nearest.iter().map(|n| n.to_bits()).max().unwrap_or(0));
     let at = nearest
@@ -157,18 +174,6 @@ fn farthest_in_bucket(nearest: &[f32], index: &[u32]) -> (f32, u32) {
         .min()
         .unwrap_or(u32::MAX);
     (largest, at)
-}
-
-/// The largest distance of (distance, cloud index) pairs; of equal ones, the lowest index (the
-/// plain loop's first).
-fn farthest(candidates: impl Iterator<Item = (f32, u32)>) -> (f32, u32) {
-    candidates.fold((f32::NEG_INFINITY, u32::MAX), |best, (n, i)| {
-        if n > best.0 || (n == best.0 && i < best.1) {
-            (n, i)
-        } else {
-            best
-        }
-    })
 }
 
 /// The bounding box of the points `order` names.
