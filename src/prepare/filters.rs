@@ -93,8 +93,14 @@ pub fn voxel_grid(points: &mut Vec<[f32; 3]>, edge: f32) -> usize {
         Some(grid) => {
             let mut slot = vec![u32::MAX; grid.occupied()];
             let mut next = 0;
+            // Neighbouring points of a scan often share a cube: its rank is looked up once.
+            let mut last = (usize::MAX, 0);
             for (p, k) in points.iter().zip(&cells) {
-                let rank = grid.rank(grid.position(*k)) as usize;
+                let at = grid.position(*k);
+                if at != last.0 {
+                    last = (at, grid.rank(at) as usize);
+                }
+                let rank = last.1;
                 if slot[rank] == u32::MAX {
                     slot[rank] = next;
                     next += 1;
@@ -592,12 +598,20 @@ fn components_on_grid(
     let [sx, sy, _] = grid.strides();
     // Joins cell a with the occupied cells among `mask` of the cells from `from` on along z.
     let join_window = |joined: &mut Joined, a: usize, from: usize, mask: u64| {
-        let mut bits = grid.window(from, 5) & mask;
-        let mut ra = u32::MAX;
+        let occupied = grid.window(from, 5);
+        if occupied & mask == 0 {
+            return;
+        }
+        // The occupied cells of the window are consecutive in grid order: the k-th has the rank
+        // of the window's start plus k.
+        let (first, mut ra) = (grid.rank(from), u32::MAX);
+        let (mut bits, mut k) = (occupied, 0);
         while bits != 0 {
-            let c = grid.rank(from + bits.trailing_zeros() as usize);
-            ra = joined.join(a as u32, ra, c);
+            if (mask >> bits.trailing_zeros()) & 1 == 1 {
+                ra = joined.join(a as u32, ra, first + k);
+            }
             bits &= bits - 1;
+            k += 1;
         }
     };
     // Rows (dx, dy) with the cells dz = -2..=2 along them as bits 0..5.
