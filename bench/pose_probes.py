@@ -13,7 +13,8 @@ and poses are fresh (e.g. `sim dataset --subjects 8 --poses 40 --seed 11 --gait-
 - `encoder RUN FIT TEST --seconds S`: fine-tunes the AE's shape encoder with a linear head per
   family onto the top 10 principal components of theta (standardised) for S seconds, printing the
   held-out R2 and the retrieval by the head's output every 500 steps: whether the point encoder
-  itself can learn a pose code, and how fast on this machine.
+  itself can learn a pose code, and how fast on this machine (`--checkpoint FILE` saves it every
+  2,000 steps and resumes a run cut short).
 
     .venv/bin/python bench/pose_probes.py retrieval RUN TEST
 """
@@ -180,9 +181,29 @@ def encoder(args) -> None:
                   for f in range(len(FAMILIES))]
         return f"held-out R2 {r2(predicted.numpy(), test_targets.numpy()):.2f}, retrieval " + " / ".join(f"{r:.2f}" for r in ratios)
 
-    print(f"before: {measure()} (head untrained)")
-    started, step = time.monotonic(), 0
-    while time.monotonic() - started < args.seconds:
+    step, spent = 0, 0.0
+    checkpoint = Path(args.checkpoint) if args.checkpoint else None
+    if checkpoint and checkpoint.exists():
+        state = torch.load(checkpoint, weights_only=False)
+        ae.shape_encoder.load_state_dict(state["encoder"])
+        heads.load_state_dict(state["heads"])
+        optimizer.load_state_dict(state["optimizer"])
+        fit.generator.set_state(state["generator"])
+        step, spent = state["step"], state["seconds"]
+        print(f"resumed from {checkpoint}: step {step}, {spent:.0f} s trained")
+    else:
+        print(f"before: {measure()} (head untrained)")
+
+    def save() -> None:
+        if checkpoint:
+            state = {"encoder": ae.shape_encoder.state_dict(), "heads": heads.state_dict(),
+                     "optimizer": optimizer.state_dict(), "generator": fit.generator.get_state(),
+                     "step": step, "seconds": spent + time.monotonic() - started}
+            torch.save(state, checkpoint.with_suffix(".tmp"))
+            checkpoint.with_suffix(".tmp").replace(checkpoint)
+
+    started = time.monotonic()
+    while spent + time.monotonic() - started < args.seconds:
         chosen = torch.randint(0, len(fit.meshes), (32,), generator=fit.generator)
         loss = (code(fit.clouds(fit.meshes[chosen]), torch.from_numpy(fit.family[chosen.numpy()]))
                 - fit_targets[chosen]).pow(2).mean()
@@ -191,7 +212,11 @@ def encoder(args) -> None:
         optimizer.step()
         step += 1
         if step % 500 == 0:
-            print(f"step {step} ({time.monotonic() - started:.0f} s): batch loss {loss.item():.3f}; {measure()}", flush=True)
+            print(f"step {step} ({spent + time.monotonic() - started:.0f} s): batch loss {loss.item():.3f}; {measure()}",
+                  flush=True)
+        if step % 2000 == 0:
+            save()
+    save()
     print(f"after {step} steps: {measure()}")
 
 
@@ -211,6 +236,8 @@ def main() -> None:
         if name == "encoder":
             command.add_argument("--seconds", type=float, default=600.0)
             command.add_argument("--learning-rate", type=float, default=1e-4)
+            command.add_argument("--checkpoint", help="saves the encoder, heads and optimizer there every 2,000 "
+                                 "steps and resumes from it when it exists (--seconds counts the whole run)")
         command.set_defaults(handler=handler)
     args = parser.parse_args()
     args.handler(args)
