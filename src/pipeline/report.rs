@@ -60,9 +60,11 @@ pub fn run_with_live_summary(
     Ok(summary)
 }
 
-/// Where a frame's CPU time went: each measured stage and prepare step, the rest of the process
-/// (ONNX Runtime's threads, the encode and batching threads, the channels), and against ONNX
-/// Runtime alone on the same bundle, what everything around the encoder costs.
+/// Where a frame's CPU time went: each measured stage and prepare step (`encode` is the encode
+/// threads' own clocks around the encoder's runs: all of ONNX Runtime's work where a session runs
+/// on one thread, as `config/replay.toml` sets), the rest of the process (ONNX Runtime's own
+/// threads, batching, the channels), and what everything around the encoder costs: against the
+/// encode threads of the same run, and against ONNX Runtime alone on the same bundle.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct CpuPerFrame {
     /// Frames received (states and rejections): what every figure is divided by.
@@ -71,8 +73,13 @@ pub struct CpuPerFrame {
     pub stages_ms: Vec<(String, f64)>,
     /// The process's CPU per frame from the first ingest to the last publish, all threads.
     pub process_ms: f64,
-    /// The process less the measured stages: ONNX Runtime, batching, channels, idle threads.
+    /// The process less the measured stages: ONNX Runtime's own threads, batching, channels.
     pub rest_ms: f64,
+    /// The process less the encode threads, and that as a multiple of theirs: what the node spends
+    /// around its encoder in the same run (with one thread a session, the encode threads hold all
+    /// of ONNX Runtime's work).
+    pub around_encode_ms: Option<f64>,
+    pub around_encode_ratio: Option<f64>,
     /// ONNX Runtime alone's CPU per frame (same bundle, batch, yaw copies and threads).
     pub encoder_alone_ms: Option<f64>,
     /// The process less ONNX Runtime alone: what the node spends around its model, and that as a
@@ -89,7 +96,7 @@ pub fn cpu_per_frame(summary: &RunSummary, baseline: Option<&EncoderAlone>) -> C
     let order = ["decode"]
         .into_iter()
         .chain(crate::prepare::STEPS)
-        .chain(["track", "publish"]);
+        .chain(["encode", "track", "publish"]);
     let stages_ms: Vec<(String, f64)> = order
         .filter_map(|stage| s.cpu.get(stage).map(|a| (stage.to_string(), per_frame(a.ns as f64))))
         .collect();
@@ -99,11 +106,18 @@ pub fn cpu_per_frame(summary: &RunSummary, baseline: Option<&EncoderAlone>) -> C
         .filter(|b| b.frames > 0)
         .map(|b| b.cpu_seconds * 1e3 / b.frames as f64);
     let around_encoder_ms = encoder_alone_ms.map(|e| process_ms - e);
+    let encode_ms = stages_ms
+        .iter()
+        .find(|(stage, _)| stage == "encode")
+        .map(|(_, ms)| *ms)
+        .filter(|ms| *ms > 0.0);
     CpuPerFrame {
         frames,
-        stages_ms,
         process_ms,
         rest_ms: process_ms - measured,
+        around_encode_ms: encode_ms.map(|e| process_ms - e),
+        around_encode_ratio: encode_ms.map(|e| (process_ms - e) / e),
+        stages_ms,
         encoder_alone_ms,
         around_encoder_ms,
         around_encoder_ratio: encoder_alone_ms
@@ -232,13 +246,18 @@ fn print_cpu(cpu: &CpuPerFrame) {
         println!("  {stage:<18} {ms:>7.3}");
     }
     println!(
-        "  {:<18} {:>7.3}   the process less the above: ONNX Runtime, batching, channels",
+        "  {:<18} {:>7.3}   the process less the above: ONNX Runtime's own threads, batching, channels",
         "rest", cpu.rest_ms
     );
     println!(
         "  {:<18} {:>7.3}   all threads, first ingest to last publish",
         "process", cpu.process_ms
     );
+    if let (Some(around), Some(ratio)) = (cpu.around_encode_ms, cpu.around_encode_ratio) {
+        println!(
+            "  around the encode threads: {around:.3} ms a frame, {ratio:.2}x their CPU (this run; all of ONNX Runtime's work with threads = 1)"
+        );
+    }
     if let (Some(encoder), Some(around), Some(ratio)) =
         (cpu.encoder_alone_ms, cpu.around_encoder_ms, cpu.around_encoder_ratio)
     {

@@ -193,9 +193,12 @@ pub(super) fn encode(
             .iter()
             .flat_map(|(_, f)| f.objects.iter().map(|p| p.points.as_slice()))
             .collect();
+        let mut cpu = crate::cpu::ThreadLap::start();
         let result = contained("encode", || encoder.encode(&clouds)).and_then(|r| r.map_err(|e| e.to_string()));
         let encode_ms = ms_since(start);
         stats.record("encode", encode_ms);
+        // One item a batch: the CPU table divides by frames, not by items.
+        stats.add_cpu(&[("encode", cpu.lap())]);
         let mut encodings = match result {
             Ok(encodings) => encodings.into_iter(),
             Err(e) => {

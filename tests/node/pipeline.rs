@@ -101,9 +101,17 @@ fn replaying_the_sample_publishes_every_frame_in_order_on_zenoh() {
         assert_eq!(account.items, 150, "{stage}");
         stages_ns += account.ns;
     }
-    for stage in ["decode", "prepare.transform", "prepare.cluster", "prepare.sample"] {
+    for stage in [
+        "decode",
+        "prepare.transform",
+        "prepare.cluster",
+        "prepare.sample",
+        "encode",
+    ] {
         assert!(cpu[stage].ns > 0, "{stage}: {cpu:?}");
     }
+    // The encode threads' account: one item a batch.
+    assert!((1..=150).contains(&cpu["encode"].items), "{cpu:?}");
     assert!(
         summary.busy_cpu.as_nanos() as f64 > 0.9 * stages_ns as f64,
         "{:?} {cpu:?}",
