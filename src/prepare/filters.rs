@@ -614,7 +614,7 @@ fn components_on_grid(
             k += 1;
         }
     };
-    // Rows (dx, dy) with the cells dz = -2..=2 along them as bits 0..5.
+    // Rows (dx, dy) with the cells dz = -2..=2 along them as bits 0 to 4.
     let row = |a: usize, dx: isize, dy: isize| (place[a] as isize + dx * sx + dy * sy - 2) as usize;
     const ABOVE_ONE: u64 = 0b01000;
     const WITHIN_ONE: u64 = 0b01110;
