@@ -101,11 +101,17 @@ def retrieval(args) -> None:
                       f"(floor {retrieval_ratio(theta, theta, views.subject[rows]):.2f}, {rows.sum()} views)")
 
 
-def probe(args) -> None:
+def run_and_views(args, fit_copies: int):
+    """The run's autoencoder and VAE, FIT's training meshes (`fit_copies` views each) and TEST's test
+    meshes (one view each)."""
     _, ae, vae, _ = load_run(args.run)
     points = ae.config.points
-    fit = Views(args.run, points, args.fit, "train", 2, args.seed)
-    test = Views(args.run, points, args.test, "test", 1, args.seed + 1)
+    return (ae, vae, Views(args.run, points, args.fit, "train", fit_copies, args.seed),
+            Views(args.run, points, args.test, "test", 1, args.seed + 1))
+
+
+def probe(args) -> None:
+    ae, vae, fit, test = run_and_views(args, 2)
     fit_codes, test_codes = fit.codes(ae, vae), test.codes(ae, vae)
     for f, family in enumerate(FAMILIES):
         for key in ("mu_E", "x_c"):
@@ -147,10 +153,7 @@ def phase_probe(family, key, fit, test, fit_codes, test_codes, f) -> None:
 
 
 def encoder(args) -> None:
-    _, ae, _, _ = load_run(args.run)
-    points = ae.config.points
-    fit = Views(args.run, points, args.fit, "train", 1, args.seed)
-    test = Views(args.run, points, args.test, "test", 1, args.seed + 1)
+    ae, _, fit, test = run_and_views(args, 1)
     components = {}
     for f, family in enumerate(FAMILIES):
         theta = fit.theta(f)
