@@ -6,8 +6,9 @@
 //!     cargo run --release --example prepare_steps -- REC.mcap... [--passes 5] [--config config/replay.toml]
 //!
 //! Decode: the recording's `/camera/depth/points` (the sim's topic) walked as a replay walks it
-//! (the MCAP reader with zstd, PointCloud2 decoding), every pass. Prepare: `Preparer::prepare_measured` on every decoded frame, every
-//! pass, with `[prepare]` from the config and N_p from its bundle. Prints CPU ms a frame (this
+//! (the MCAP reader with zstd, PointCloud2 decoding), every pass. Prepare:
+//! `Preparer::prepare_measured` on every decoded frame, every pass, with `[prepare]` from the
+//! config and N_p from its bundle. Prints CPU ms a frame (this
 //! thread's clock), the median pass of each, and a digest of the prepared points (two builds that
 //! prepare every frame alike print the same).
 
