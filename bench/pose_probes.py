@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "models"))
 from gdvae.data import DepthCamera, load_dataset  # noqa: E402
 from gdvae.evaluate import encode_all  # noqa: E402
-from gdvae.geometry import random_rotation_matrices, rotate  # noqa: E402
+from gdvae.geometry import quaternion_to_matrix, random_rotation_matrices, rotate  # noqa: E402
 from gdvae.surface import PointSampler, view_directions  # noqa: E402
 from gdvae.train import load_run, use_model_units  # noqa: E402
 
@@ -56,9 +56,12 @@ class Views:
         self.family = np.array([FAMILIES.index(t["family"]) for t in self.truth])
         self.subject = np.array([t["subject"] for t in self.truth])
 
-    def clouds(self, meshes: torch.Tensor) -> torch.Tensor:
+    def clouds(self, meshes: torch.Tensor, turned: bool = True) -> torch.Tensor:
+        """Views of `meshes`, each turned by a random yaw (`turned`) or left in the mesh's canonical
+        frame (the sim's meshes face +x)."""
         views = self.sampler.partial_views(meshes, view_directions(len(meshes), self.generator, CPU))
-        return rotate(views, random_rotation_matrices(len(meshes), self.generator))
+        turns = random_rotation_matrices(len(meshes), self.generator)
+        return rotate(views, turns) if turned else views
 
     def codes(self, ae, vae) -> dict:
         parts = []
@@ -168,7 +171,20 @@ def encoder(args) -> None:
         return torch.tensor(np.array([((np.array(t["theta"]) - components[f][0]) @ components[f][1].T) / components[f][2]
                                       for t, f in zip(views.truth, views.family)]), dtype=torch.float32)
     fit_targets, test_targets = targets(fit), targets(test)
-    test_clouds = test.clouds(test.meshes)
+
+    def framed(views, meshes):
+        """The encoder's input: a view turned by a random yaw (`any`), left facing the way the mesh
+        faces (`true`: the heading known), or turned and turned back by the autoencoder's own
+        rotation estimate (`estimated`: what a bundle can do)."""
+        if args.frame == "true":
+            return views.clouds(meshes, turned=False)
+        clouds = views.clouds(meshes)
+        if args.frame == "estimated":
+            with torch.no_grad():
+                clouds = rotate(clouds, quaternion_to_matrix(ae.encode_rotation(clouds)).transpose(-1, -2))
+        return clouds
+    ae.rotation_encoder.eval()
+    test_clouds = framed(test, test.meshes)
     heads = torch.nn.Linear(ae.config.latent, 10 * len(FAMILIES))
     optimizer = torch.optim.Adam([*ae.shape_encoder.parameters(), *heads.parameters()], args.learning_rate)
 
@@ -208,7 +224,7 @@ def encoder(args) -> None:
     started = time.monotonic()
     while spent + time.monotonic() - started < args.seconds:
         chosen = torch.randint(0, len(fit.meshes), (32,), generator=fit.generator)
-        loss = (code(fit.clouds(fit.meshes[chosen]), torch.from_numpy(fit.family[chosen.numpy()]))
+        loss = (code(framed(fit, fit.meshes[chosen]), torch.from_numpy(fit.family[chosen.numpy()]))
                 - fit_targets[chosen]).pow(2).mean()
         optimizer.zero_grad()
         loss.backward()
@@ -239,6 +255,9 @@ def main() -> None:
         if name == "encoder":
             command.add_argument("--seconds", type=float, default=600.0)
             command.add_argument("--learning-rate", type=float, default=1e-4)
+            command.add_argument("--frame", choices=("any", "true", "estimated"), default="any",
+                                 help="the views' heading: any yaw (the encoder must ignore it), the mesh's own "
+                                 "(known), or turned back by the autoencoder's rotation estimate")
             command.add_argument("--checkpoint", help="saves the encoder, heads and optimizer there every 2,000 "
                                  "steps and resumes from it when it exists (--seconds counts the whole run)")
         command.set_defaults(handler=handler)

@@ -54,6 +54,12 @@ class AEConfig:
     # (cos psi/2, 0, 0, sin psi/2). A regressed quaternion needs a seam for yaw-only rotations (a
     # full turn maps q to -q); the circle has none, and the bundle still outputs q. (Issue 11.)
     rotation_head: str = "quaternion"
+    # Not in the paper: E_p, a second shape encoder that reads the cloud turned back by R(q)^T (in
+    # the frame the estimated heading gives it) and is trained on the sim's pose (pose.py), so that
+    # the VAE's z_E reads a code that holds the pose. E_x of the STD kind must ignore the heading to
+    # be rotation-invariant and carries little pose (models/EXPERIMENTS.md, "A pose encoder in the
+    # estimated frame"). Its code x_p has x_c's size; E_p starts from E_x's weights.
+    pose_encoder: bool = False
 
     def validate(self) -> None:
         if self.kind not in ("ftl", "std"):
@@ -97,6 +103,7 @@ class Autoencoder(nn.Module):
         self.config = config
         self.rotation_encoder = PointNet(config.rotation_hidden, 2 if config.rotation_head == "yaw" else 4)
         self.shape_encoder = PointNet(config.shape_hidden, config.latent)
+        self.pose_encoder = PointNet(config.shape_hidden, config.latent) if config.pose_encoder else None
         k = config.decoder_width
         self.decoder = mlp(config.latent, (k, 2 * k, 4 * k), 3 * config.points)
 
@@ -118,6 +125,12 @@ class Autoencoder(nn.Module):
             scramble = random_rotation_matrices(len(points), generator, self.config.full_rotations, points.device)
             points = rotate(points, scramble)
         return self.shape_encoder(points), None
+
+    def encode_pose(self, points: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor | None:
+        """x_p: E_p's code of the points turned back by `rotation` (None without a pose encoder)."""
+        if self.pose_encoder is None:
+            return None
+        return self.pose_encoder(rotate(points, rotation.transpose(-1, -2)))
 
     def decode(self, x_c: torch.Tensor) -> torch.Tensor:
         return self.decoder(x_c).view(x_c.shape[0], -1, 3)

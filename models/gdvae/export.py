@@ -37,8 +37,9 @@ class EncoderGraph(nn.Module):
 
     def forward(self, points):
         q = self.ae.encode_rotation(points)
-        x_c, _ = self.ae.encode_shape(points, quaternion_to_matrix(q))
-        (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = self.vae.encode(q, x_c)
+        rotation = quaternion_to_matrix(q)
+        x_c, _ = self.ae.encode_shape(points, rotation)
+        (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = self.vae.encode(q, x_c, self.ae.encode_pose(points, rotation))
         return q, x_c, mu_r, lv_r, mu_e, lv_e, mu_i, lv_i
 
 
@@ -132,7 +133,8 @@ def parity(ae, vae, folder: Path) -> float:
         canonical, decoded_q = torch.from_numpy(got["decoder.onnx"][0]), torch.from_numpy(got["decoder.onnx"][2])
         expected = {
             "encoder.onnx": [*EncoderGraph(ae, vae).eval()(points)[:2],
-                             *(value for pair in vae.encode(q, x_c) for value in pair)],
+                             *(value for pair in vae.encode(q, x_c, ae.encode_pose(points, quaternion_to_matrix(q)))
+                               for value in pair)],
             "decoder.onnx": [DecoderGraph(ae, vae).eval()(*latents)[0],
                              rotate(canonical, quaternion_to_matrix(decoded_q)),
                              DecoderGraph(ae, vae).eval()(*latents)[2]],
@@ -189,6 +191,7 @@ def write_bundle(ae, vae, folder: str | Path, *, scale: float, recipe_name: str,
             "supervision": "supervised" if a.supervised else "unsupervised",
             "regime": c.regime,
             "recipe": recipe_name,
+            "pose_encoder": a.pose_encoder,
         },
         "sizes": {"points": a.points, "spectrum": c.spectrum, "x_c": a.latent, "z_R": c.n_rotation,
                   "z_E": c.n_extrinsic, "z_I": c.n_intrinsic},

@@ -72,7 +72,8 @@ def state_from_bundle(bundle: Path, ae: Autoencoder, vae: LatentVAE) -> tuple[di
         named.update(onnx_initializers(bundle / name)[0])
     convolutions = iter(folded_convolutions(encoder_values, encoder_nodes))
     ae_state = {}
-    for encoder in ("rotation_encoder", "shape_encoder"):  # the order encode_rotation, encode_shape run in
+    # The order the encoder graph runs them in: encode_rotation, encode_shape, encode_pose.
+    for encoder in ("rotation_encoder", "shape_encoder", *(("pose_encoder",) if ae.pose_encoder is not None else ())):
         module = getattr(ae, encoder)
         for index, layer in enumerate(module.shared):
             prefix = f"{encoder}.shared.{index}"
@@ -127,9 +128,10 @@ def architecture(manifest: dict, rotation_head: str):
     chosen = recipe(model["recipe"], regime=model["regime"], kind=model["ae_type"])
     chosen.ae = replace(chosen.ae, points=sizes["points"], latent=sizes["x_c"], rotation_head=rotation_head,
                         supervised=model.get("supervision", "supervised") == "supervised",
-                        full_rotations=manifest["units"].get("rotation_mode") == "so3")
+                        full_rotations=manifest["units"].get("rotation_mode") == "so3",
+                        pose_encoder=bool(model.get("pose_encoder", False)))
     chosen.vae = replace(chosen.vae, latent=sizes["x_c"], spectrum=sizes["spectrum"], n_extrinsic=sizes["z_E"],
-                         n_rotation=sizes["z_R"])
+                         n_rotation=sizes["z_R"], pose_input=sizes["x_c"] if chosen.ae.pose_encoder else 0)
     chosen.spectrum_count = sizes["spectrum"]
     chosen.model_units = manifest["units"]["model_units_per_metre"]  # what its AE was trained in
     for field, key in (("ae_iterations", "ae_iterations"), ("vae_iterations", "vae_iterations"),

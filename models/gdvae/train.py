@@ -31,6 +31,7 @@ from .ae import AEConfig, Autoencoder, ae_loss, restore_batch_norms
 from .data import DepthCamera, MeshDataset
 from .geometry import chamfer, matrix_to_quaternion, quaternion_to_matrix, random_rotation_matrices, rotate
 from .paired import PairedBatches, Pairing
+from .pose import train_pose
 from .surface import PointSampler
 from .vae import LatentVAE, VAEConfig, vae_loss
 
@@ -44,9 +45,10 @@ class StageLimits:
 
     ae_seconds: float | None = None
     vae_seconds: float | None = None
+    pose_seconds: float | None = None
 
     def validate(self) -> None:
-        for name, value in (("AE", self.ae_seconds), ("VAE", self.vae_seconds)):
+        for name, value in (("AE", self.ae_seconds), ("VAE", self.vae_seconds), ("pose", self.pose_seconds)):
             if value is not None and not value > 0:
                 raise ValueError(f"{name} time budget {value} s: must be positive")
 
@@ -70,6 +72,12 @@ class Recipe:
     # mesh's spectrum, so that L_S teaches z_I to name the whole shape from any side (what the node
     # sees). None: the AE's `partial_views`.
     bank_partial_views: float | None = None
+    # The pose stage (pose.py; only for an AE with `pose_encoder`): iterations, batch, learning
+    # rate, and how many of theta's principal components per family E_p is taught.
+    pose_iterations: int = 10_000
+    pose_batch: int = 32
+    pose_learning_rate: float = 1e-4
+    pose_components: int = 10
     vae_iterations: int = 40000
     vae_batch: int = 264
     vae_learning_rate: float = 1e-4
@@ -130,7 +138,8 @@ def recipe(name: str, regime: str = "gdvae++", kind: str = "ftl") -> Recipe:
                       decoder_width=32, copies=2)
         return Recipe("smoke", ae, replace(vae, latent=ae.latent, width_scale=0.02, flow_layers=3, n_extrinsic=4),
                       ae_iterations=4, ae_pretrain_iterations=2, ae_batch=4, bank_copies=2,
-                      vae_iterations=4, vae_batch=16, checkpoint_seconds=0.0)
+                      vae_iterations=4, vae_batch=16, checkpoint_seconds=0.0, pose_iterations=4, pose_batch=4,
+                      pose_components=2)
     raise ValueError(f"unknown recipe {name!r} (known: {', '.join(RECIPES)})")
 
 
@@ -150,7 +159,7 @@ def load_run(run_dir: str | Path) -> tuple[Recipe, Autoencoder, LatentVAE | None
     chosen = Recipe(ae=ae_config, vae=vae_config, **raw)
     state = torch.load(checkpoint_path, weights_only=False, map_location="cpu")
     ae = Autoencoder(ae_config)
-    ae.load_state_dict(state["ae"])
+    load_ae_state(ae, state["ae"])
     ae.eval()
     vae = None
     # A run imported from a bundle (import_bundle.py) carries the bundle's VAE beside its AE.
@@ -296,6 +305,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if init_from is not None:  # the reused AE is the source's: its configuration and how it was trained
         source_recipe = json.loads((Path(init_from) / "recipe.json").read_text())
         source_ae = AEConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in source_recipe["ae"].items()})
+        # A pose encoder may be added to the source's AE (trained here, from its E_x), not removed.
+        source_ae = replace(source_ae, pose_encoder=source_ae.pose_encoder or chosen.ae.pose_encoder)
         if source_ae != chosen.ae:
             log.info("the AE configuration is %s's (reused with its weights)", init_from)
         chosen.ae = source_ae
@@ -306,6 +317,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         chosen.bank_true_rotation = source_recipe.get("bank_true_rotation", False)
         source_iterations = chosen.ae_pretrain_iterations + chosen.ae_iterations
         chosen.ae_iterations += continue_ae
+    chosen.vae = replace(chosen.vae, pose_input=chosen.ae.latent if chosen.ae.pose_encoder else 0)
     (run_dir / "recipe.json").write_text(json.dumps(asdict(chosen), indent=2, default=str))
     (run_dir / "dataset.json").write_text(json.dumps(dataset_summary(dataset), indent=2))
     torch.manual_seed(chosen.seed)
@@ -325,12 +337,16 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         if chosen.vae.keep_intrinsic and continue_ae > 0:
             raise ValueError("keep_intrinsic keeps the source's z_I encoder, which reads its AE's codes: "
                              "the AE cannot be continued in the same run")
+        adds_pose = chosen.ae.pose_encoder and not any(k.startswith("pose_encoder.") for k in source["ae"])
+        if adds_pose and not (continue_ae > 0 or rebuild_bank):
+            raise ValueError(f"{init_from}: its AE has no pose encoder; one is trained here before a new code bank: "
+                             "add --rebuild-bank")
         if continue_ae > 0:
             state = {"stage": "ae", "iteration": source_iterations, "ae": source["ae"]}
             log.info("continuing the AE of %s for %d iterations (new code bank)", init_from, continue_ae)
         elif rebuild_bank:
-            state = {"stage": "bank", "iteration": 0, "ae": source["ae"]}
-            log.info("starting from the AE of %s (new code bank)", init_from)
+            state = {"stage": "pose" if adds_pose else "bank", "iteration": 0, "ae": source["ae"]}
+            log.info("starting from the AE of %s (%snew code bank)", init_from, "pose stage, " if adds_pose else "")
         else:
             state = {"stage": "vae", "iteration": 0, "ae": source["ae"], "bank": source["bank"]}
             log.info("starting from the AE and code bank of %s", init_from)
@@ -348,10 +364,10 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
 
     ae = Autoencoder(chosen.ae)
     if "ae" in state:
-        ae.load_state_dict(state["ae"])
+        load_ae_state(ae, state["ae"])
     stages = StageRecord(run_dir / "stages.json", str(device))
     sampler = None
-    if state["stage"] in ("ae", "bank"):  # the VAE trains on the code bank, without clouds
+    if state["stage"] in ("ae", "pose", "bank"):  # the VAE trains on the code bank, without clouds
         started = time.monotonic()
         sampler = PointSampler(dataset, train_indices, chosen.ae.points, chosen.seed + state["iteration"],
                                DepthCamera() if chosen.depth_camera_views else None, device)
@@ -371,10 +387,17 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if state["stage"] == "ae":
         probe = ReconstructionProbe(dataset, train_indices, chosen, device)
         train_ae(ae, sampler, chosen, state, save, run_dir, device, limits.ae_seconds, loader_workers, stages, probe)
-        state = {"stage": "bank", "iteration": 0}
+        state = {"stage": "pose" if chosen.ae.pose_encoder else "bank", "iteration": 0}
         save(state)
     if stop_after == "ae":
         return {"ae": ae}
+    if state["stage"] == "pose":
+        progress = Progress("pose", chosen.pose_iterations, run_dir / "log.jsonl", first_iteration=state["iteration"])
+        carried = {"start_vae": state["start_vae"]} if "start_vae" in state else {}
+        train_pose(ae, sampler, [dataset.items[i].truth for i in train_indices], chosen, state,
+                   lambda extra: save({**extra, **carried}), progress, device, limits.pose_seconds, stages)
+        state = {"stage": "bank", "iteration": 0, **carried}
+        save(state)
 
     pairing = None
     if chosen.vae.paired:
@@ -396,7 +419,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         vae.load_state_dict(state["vae"])
     else:
         if "start_vae" in state:  # keep_intrinsic: the source's VAE, its flow's input scaling included
-            vae.load_state_dict(state["start_vae"])
+            load_start_vae(vae, state["start_vae"])
         else:
             vae.flow.input.fit(bank["spectrum"])
         vae.code_norm.fill_(float(bank["x_c"].pow(2).sum(-1).mean()))
@@ -539,6 +562,28 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir, device, budget_s
     ae.eval()
 
 
+def load_ae_state(ae: Autoencoder, weights: dict) -> None:
+    """An AE's weights; a pose encoder the weights lack stays as built (the pose stage starts it
+    from E_x's), anything else missing or left over is an error."""
+    missing, unexpected = ae.load_state_dict(weights, strict=False)
+    if unexpected or any(not key.startswith("pose_encoder.") for key in missing):
+        raise ValueError(f"the AE's weights do not fit its configuration: missing {missing}, unexpected {unexpected}")
+
+
+def load_start_vae(vae: LatentVAE, weights: dict) -> None:
+    """keep_intrinsic's starting VAE. When this VAE's z_E encoder reads a pose code the source's
+    did not, that encoder starts afresh (it is trained here anyway); everything else must fit."""
+    own = vae.state_dict()
+    fresh = {key for key, value in weights.items()
+             if key.startswith("extrinsic.") and key in own and own[key].shape != value.shape}
+    missing, unexpected = vae.load_state_dict({k: v for k, v in weights.items() if k not in fresh}, strict=False)
+    if unexpected or set(missing) != fresh:
+        raise ValueError(f"the starting VAE's weights do not fit: missing {sorted(set(missing) - fresh)}, "
+                         f"unexpected {unexpected}")
+    if fresh:
+        log.info("z_E's encoder reads the pose code as well: its first layers start afresh")
+
+
 @torch.no_grad()
 def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, device=None,
                 pairing: Pairing | None = None) -> dict:
@@ -553,7 +598,7 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, 
     partial = chosen.bank_view_share()
     if not 0.0 <= partial <= 1.0:
         raise ValueError(f"bank_partial_views {partial}: must be within 0..1")
-    qs, codes = [], []
+    qs, codes, poses = [], [], []
     for meshes in torch.arange(len(sampler)).split(BANK_CHUNK):
         clouds = sampler.views(meshes.repeat_interleave(chosen.bank_copies), 1, partial).to(device)
         rotations = random_rotation_matrices(len(clouds), full=chosen.ae.full_rotations, device=device)
@@ -564,12 +609,16 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, 
             q = ae.encode_rotation(inputs)
             used = quaternion_to_matrix(q)
         x_c, _ = ae.encode_shape(inputs, used)
+        if ae.pose_encoder is not None:  # turned back by E_r's estimate, as the bundle's encoder does
+            poses.append(ae.encode_pose(inputs, quaternion_to_matrix(ae.encode_rotation(inputs))).cpu())
         qs.append(q.cpu())
         codes.append(x_c.cpu())
     spectrum = torch.from_numpy(np.repeat(spectra, chosen.bank_copies, 0)).float()
     log.info("bank: %d training meshes x %d rotations encoded (%.0f%% partial views)", len(sampler),
              chosen.bank_copies, 100 * partial)
     bank = {"q": torch.cat(qs), "x_c": torch.cat(codes), "spectrum": spectrum, "copies": chosen.bank_copies}
+    if poses:
+        bank["x_p"] = torch.cat(poses)
     if pairing is not None:
         targets = []
         for meshes in torch.arange(len(sampler)).split(BANK_CHUNK):
@@ -631,6 +680,10 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
     if (vae.config.omega_view > 0 or vae.config.paired) and size % copies:
         raise ValueError(f"the code bank has {size} entries, not a multiple of its {copies} copies per mesh")
     keys = ("q", "x_c", "spectrum", "target") if vae.config.paired else ("q", "x_c", "spectrum")
+    if vae.config.pose_input:
+        if "x_p" not in bank:
+            raise ValueError("this VAE's z_E reads the pose code, but the code bank has none: rebuild it (--rebuild-bank)")
+        keys += ("x_p",)
     on_device = {key: bank[key].to(device) for key in keys}
     triples = (PairedBatches(bank["pairing"], copies, chosen.seed + 1 + state["iteration"],
                              pose_pairs=vae.config.omega_pose_contrast > 0) if vae.config.paired else None)
@@ -649,7 +702,8 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
         warmup = vae.config.beta_warmup_iterations
         beta_scale = min(1.0, iteration / warmup) if warmup > 0 else 1.0
         losses = vae_loss(vae, on_device["q"][batch], on_device["x_c"][batch], on_device["spectrum"][batch],
-                          dataset_size=size, beta_scale=beta_scale, paired=paired)
+                          dataset_size=size, beta_scale=beta_scale, paired=paired,
+                          x_p=on_device["x_p"][batch] if "x_p" in on_device else None)
         optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
         torch.nn.utils.clip_grad_norm_(vae.trained_parameters(), 100.0)

@@ -1,0 +1,94 @@
+"""The pose stage (pose.py): its targets, and a smoke run that adds a pose encoder to a trained
+model, whose z_E then reads it, through export, import and the node."""
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gdvae.cli import main
+from gdvae.import_bundle import import_bundle
+from gdvae.pose import PoseTargets
+from gdvae.train import load_run
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def truths(rng, family, count, joints):
+    return [{"family": family, "theta": list(rng.normal(size=joints) * np.arange(1, joints + 1))} for _ in range(count)]
+
+
+def test_pose_targets_are_each_family_s_top_components_in_units_of_their_spread():
+    rng = np.random.default_rng(0)
+    # The families have skeletons of different sizes: each is projected on its own axes.
+    records = truths(rng, "quadruped", 40, 9) + truths(rng, "biped", 30, 6)
+    targets = PoseTargets(records, components=3)
+    assert targets.families == ["biped", "quadruped"]
+    rows = targets.rows.numpy()
+    for f in range(2):
+        mine = rows[targets.family == f]
+        np.testing.assert_allclose(mine.mean(0), 0, atol=1e-5)
+        np.testing.assert_allclose(mine.std(0), 1, atol=1e-4)
+    # The largest joint's variance dominates: the first component is mostly that joint.
+    assert 0.5 < targets.explained["quadruped"] < 1.0
+    with pytest.raises(ValueError, match="ground truth"):
+        PoseTargets([{"family": "biped"}] * 20, components=3)
+    with pytest.raises(ValueError, match="more than 3 training meshes"):
+        PoseTargets(truths(rng, "biped", 3, 6), components=3)
+
+
+@pytest.fixture(scope="module")
+def paired_dataset(tmp_path_factory):
+    sim = ROOT / "target" / "release" / "sim"
+    if not sim.exists():
+        pytest.skip("target/release/sim is not built (make binaries)")
+    out = tmp_path_factory.mktemp("paired")
+    subprocess.run([str(sim), "dataset", "--out", str(out), "--subjects", "4", "--poses", "3", "--shared-poses",
+                    "--gait-fraction", "0.5", "--split", "0.5,0,0.5", "--vertices", "800", "--seed", "5"],
+                   check=True, capture_output=True)
+    return out
+
+
+def test_a_pose_encoder_added_to_a_trained_model_feeds_z_e_and_survives_export_and_import(paired_dataset, tmp_path):
+    source, run, bundle = tmp_path / "source", tmp_path / "run", tmp_path / "bundle"
+    assert main(["train", str(paired_dataset), "--out", str(source), "--recipe", "smoke", "--regime", "paired",
+                 "--ae", "std", "--set", "recipe.vae_batch=24", "--set", "recipe.depth_camera_views=true"]) == 0
+    added = ["train", str(paired_dataset), "--out", str(run), "--recipe", "smoke", "--regime", "paired",
+             "--init-from", str(source), "--set", "ae.pose_encoder=true", "--set", "vae.keep_intrinsic=true",
+             "--set", "recipe.vae_batch=24", "--set", "vae.omega_pose_contrast=50"]
+    assert main(added) != 0  # the bank must be rebuilt with the pose code
+    assert main([*added, "--rebuild-bank"]) == 0
+    stages = [json.loads(line)["stage"] for line in (run / "log.jsonl").read_text().splitlines()]
+    assert "pose" in stages and stages.index("pose") < stages.index("vae")
+    _, ae, vae, state = load_run(run)
+    _, source_ae, _, _ = load_run(source)
+    assert state["bank"]["x_p"].shape == state["bank"]["x_c"].shape
+    # E_p trained away from E_x's weights; E_x and E_r are the source's.
+    assert not torch.equal(ae.pose_encoder.head.weight, ae.shape_encoder.head.weight)
+    assert torch.equal(ae.shape_encoder.head.weight, source_ae.shape_encoder.head.weight)
+    assert torch.equal(ae.rotation_encoder.head.weight, source_ae.rotation_encoder.head.weight)
+    # z_E reads the pose code and z_I does not.
+    points = torch.randn(3, ae.config.points, 3) * 0.2
+    with torch.no_grad():
+        q = ae.encode_rotation(points)
+        x_c, _ = ae.encode_shape(points, torch.eye(3).expand(3, 3, 3))
+        x_p = ae.encode_pose(points, torch.eye(3).expand(3, 3, 3))
+        (_, (e1, _), (i1, _)), (_, (e2, _), (i2, _)) = vae.encode(q, x_c, x_p), vae.encode(q, x_c, x_p + 1.0)
+    assert not torch.allclose(e1, e2) and torch.equal(i1, i2)
+    with pytest.raises(ValueError, match="pose code"):
+        vae.encode(q, x_c)
+    assert main(["export", str(run), "--out", str(bundle)]) == 0
+    assert json.loads((bundle / "manifest.json").read_text())["model"]["pose_encoder"] is True
+    summary = import_bundle(bundle, tmp_path / "imported")  # parity checked inside
+    assert summary["parity_max_diff"] < 1e-4
+    _, imported_ae, _, _ = load_run(tmp_path / "imported")
+    assert imported_ae.pose_encoder is not None
+    node = ROOT / "target" / "release" / "gdvae-node"
+    if not node.exists():
+        pytest.skip("target/release/gdvae-node is not built (make binaries)")
+    shown = subprocess.run([str(node), "inspect-model", str(bundle), "--load"], capture_output=True, text=True,
+                           timeout=120)
+    assert shown.returncode == 0, shown.stderr
