@@ -52,6 +52,10 @@ pub struct ModelInfo {
     pub supervision: String,
     pub regime: String,
     pub recipe: String,
+    /// Whether z_E's encoder reads a pose encoder's code (the kit's pose stage); absent in bundles
+    /// exported before it existed.
+    #[serde(default)]
+    pub pose_encoder: bool,
 }
 
 #[derive(Debug, Clone, Copy, Deserialize, serde::Serialize)]

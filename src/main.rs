@@ -418,8 +418,16 @@ fn inspect_model(bundle: &Path, load: bool, onnxruntime: Option<&Path>) -> Resul
     let m = &bundle.manifest;
     println!("bundle {} (schema {})", bundle.folder.display(), m.schema_version);
     println!(
-        "model: {} regime, {} autoencoder, {}, recipe {}",
-        m.model.regime, m.model.ae_type, m.model.supervision, m.model.recipe
+        "model: {} regime, {} autoencoder, {}, recipe {}{}",
+        m.model.regime,
+        m.model.ae_type,
+        m.model.supervision,
+        m.model.recipe,
+        if m.model.pose_encoder {
+            ", z_E from a pose encoder"
+        } else {
+            ""
+        }
     );
     let s = m.sizes;
     println!(

@@ -93,6 +93,12 @@ def train_command(args) -> int:
     log.info("%s: %d meshes (%d train), scale %.4f model units per input unit", args.dataset, len(dataset.meshes),
              len(dataset.indices("train")), dataset.scale)
     spectra = dataset_spectra(dataset, chosen.spectrum_count, SpectrumCache(Path(args.dataset) / ".spectra"))
+    pose_dataset = None
+    if args.pose_data:
+        if not chosen.ae.pose_encoder:
+            raise SystemExit("--pose-data is the pose stage's dataset: it goes with --set ae.pose_encoder=true")
+        pose_dataset = load_dataset(args.pose_data)
+        use_model_units(pose_dataset, chosen.model_units or dataset.scale)
     if args.rebuild_bank and not args.init_from:
         raise SystemExit("--rebuild-bank goes with --init-from (a fresh run builds its own bank)")
     if args.continue_ae and not args.init_from:
@@ -104,7 +110,7 @@ def train_command(args) -> int:
                          vae_seconds=None if args.vae_minutes is None else 60.0 * args.vae_minutes)
     train(dataset, spectra, args.out, chosen, stop_after=args.stop_after, init_from=args.init_from,
           rebuild_bank=args.rebuild_bank, continue_ae=args.continue_ae, device=device, limits=limits,
-          loader_workers=args.loader_workers)
+          loader_workers=args.loader_workers, pose_dataset=pose_dataset)
     log.info("training finished: %s", args.out)
     return 0
 
@@ -354,6 +360,9 @@ def main(argv=None) -> int:
     training.add_argument("--rebuild-bank", action="store_true",
                           help="with --init-from: reuse only the AE and encode a new code bank with this run's "
                                "bank settings (recipe.bank_copies, recipe.bank_partial_views)")
+    training.add_argument("--pose-data", metavar="DATASET",
+                          help="with ae.pose_encoder: the pose stage learns from this sim dataset's training "
+                               "meshes (many distinct poses) instead of DATASET's (default)")
     training.add_argument("--limit", type=int, help="use only the first N meshes")
     training.add_argument("--device", default="cpu", help="torch device to train on: cpu (default), cuda, cuda:1")
     training.add_argument("--ae-minutes", type=float, metavar="M",

@@ -279,7 +279,7 @@ class Plateau:
 def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen: Recipe,
           stop_after: str | None = None, init_from: str | Path | None = None, rebuild_bank: bool = False,
           continue_ae: int = 0, device: str = "cpu", limits: StageLimits | None = None,
-          loader_workers: int = 0) -> dict:
+          loader_workers: int = 0, pose_dataset: MeshDataset | None = None) -> dict:
     """Runs (or resumes) the three stages. Returns the trained modules.
 
     `init_from`: another run whose AE and code bank this run reuses (it starts at the VAE stage),
@@ -288,7 +288,9 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     source's AE that many more iterations first (an undertrained AE; the bank is then rebuilt).
     `device`: where the networks train and their batches are made; `limits`: per-stage wall-clock
     budgets; `loader_workers`: processes that make AE batches ahead of the training step on a CPU
-    (0: in the training process, on its device).
+    (0: in the training process, on its device). `pose_dataset`: the pose stage's meshes (its
+    training split; default `dataset`'s), e.g. many distinct poses where `dataset` is a paired grid
+    of few.
     """
     limits = limits or StageLimits()
     limits.validate()
@@ -394,7 +396,13 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if state["stage"] == "pose":
         progress = Progress("pose", chosen.pose_iterations, run_dir / "log.jsonl", first_iteration=state["iteration"])
         carried = {"start_vae": state["start_vae"]} if "start_vae" in state else {}
-        train_pose(ae, sampler, [dataset.items[i].truth for i in train_indices], chosen, state,
+        posed, posed_indices, pose_sampler = dataset, train_indices, sampler
+        if pose_dataset is not None:
+            posed, posed_indices = pose_dataset, pose_dataset.indices("train")
+            pose_sampler = PointSampler(posed, posed_indices, chosen.ae.points, chosen.seed + state["iteration"],
+                                        DepthCamera() if chosen.depth_camera_views else None, device)
+            log.info("pose stage on %s: %d training meshes", posed.root, len(posed_indices))
+        train_pose(ae, pose_sampler, [posed.items[i].truth for i in posed_indices], chosen, state,
                    lambda extra: save({**extra, **carried}), progress, device, limits.pose_seconds, stages)
         state = {"stage": "bank", "iteration": 0, **carried}
         save(state)

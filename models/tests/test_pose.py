@@ -60,7 +60,11 @@ def test_a_pose_encoder_added_to_a_trained_model_feeds_z_e_and_survives_export_a
              "--init-from", str(source), "--set", "ae.pose_encoder=true", "--set", "vae.keep_intrinsic=true",
              "--set", "recipe.vae_batch=24", "--set", "vae.omega_pose_contrast=50"]
     assert main(added) != 0  # the bank must be rebuilt with the pose code
-    assert main([*added, "--rebuild-bank"]) == 0
+    with pytest.raises(SystemExit, match="pose_encoder"):  # a pose dataset without a pose encoder
+        main(["train", str(paired_dataset), "--out", str(tmp_path / "no"), "--recipe", "smoke", "--init-from",
+              str(source), "--rebuild-bank", "--pose-data", str(paired_dataset)])
+    # The pose stage may learn from another dataset's meshes (here the same one, by its own path).
+    assert main([*added, "--rebuild-bank", "--pose-data", str(paired_dataset)]) == 0
     stages = [json.loads(line)["stage"] for line in (run / "log.jsonl").read_text().splitlines()]
     assert "pose" in stages and stages.index("pose") < stages.index("vae")
     _, ae, vae, state = load_run(run)
@@ -92,3 +96,4 @@ def test_a_pose_encoder_added_to_a_trained_model_feeds_z_e_and_survives_export_a
     shown = subprocess.run([str(node), "inspect-model", str(bundle), "--load"], capture_output=True, text=True,
                            timeout=120)
     assert shown.returncode == 0, shown.stderr
+    assert "z_E from a pose encoder" in shown.stdout
