@@ -247,6 +247,11 @@ def model_card(manifest: dict) -> str:
         f"{t.get('dataset', '?')}: {t.get('train_meshes', '?')} training meshes of {t.get('train_subjects', '?')} "
         f"subjects; families {', '.join(t.get('families', [])) or '?'}.",
         f"AE iterations {t.get('ae_iterations', '?')}, VAE iterations {t.get('vae_iterations', '?')}.",
+        *([f"z_E's encoder reads a pose encoder's code: E_p, which sees the cloud turned back by the estimated "
+           f"rotation, was taught the top {t['pose_stage']['components']} principal components of the sim's "
+           f"joint angles per family for {t['pose_stage']['iterations']} iterations on "
+           f"{t['pose_stage']['train_meshes']} training meshes of {t['pose_stage']['dataset']}."]
+          if t.get("pose_stage") else []),
         f"Partial views: {partial:.0%} of the AE's input copies were the side a camera sees"
         f"{', as the depth camera renders it (self-occlusion, stereo noise)' if t.get('depth_camera_views') else ''} "
         "(the AE still reconstructs the whole surface)." if partial else "Partial views: none (whole surfaces only).",

@@ -321,7 +321,12 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         chosen.ae_iterations += continue_ae
     chosen.vae = replace(chosen.vae, pose_input=chosen.ae.latent if chosen.ae.pose_encoder else 0)
     (run_dir / "recipe.json").write_text(json.dumps(asdict(chosen), indent=2, default=str))
-    (run_dir / "dataset.json").write_text(json.dumps(dataset_summary(dataset), indent=2))
+    summary = dataset_summary(dataset)
+    if chosen.ae.pose_encoder:  # what E_p was taught on (the bundle's manifest and model card say it)
+        posed = pose_dataset or dataset
+        summary["pose_stage"] = {"dataset": str(posed.root), "train_meshes": len(posed.indices("train")),
+                                 "iterations": chosen.pose_iterations, "components": chosen.pose_components}
+    (run_dir / "dataset.json").write_text(json.dumps(summary, indent=2))
     torch.manual_seed(chosen.seed)
     checkpoint_path = run_dir / "checkpoint.pt"
     imported = False

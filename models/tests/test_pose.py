@@ -85,7 +85,10 @@ def test_a_pose_encoder_added_to_a_trained_model_feeds_z_e_and_survives_export_a
     with pytest.raises(ValueError, match="pose code"):
         vae.encode(q, x_c)
     assert main(["export", str(run), "--out", str(bundle)]) == 0
-    assert json.loads((bundle / "manifest.json").read_text())["model"]["pose_encoder"] is True
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    assert manifest["model"]["pose_encoder"] is True
+    assert manifest["training"]["pose_stage"]["dataset"] == str(paired_dataset)
+    assert "pose encoder's code" in (bundle / "MODEL_CARD.md").read_text()
     summary = import_bundle(bundle, tmp_path / "imported")  # parity checked inside
     assert summary["parity_max_diff"] < 1e-4
     _, imported_ae, _, _ = load_run(tmp_path / "imported")
