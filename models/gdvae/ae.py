@@ -60,6 +60,9 @@ class AEConfig:
     # be rotation-invariant and carries little pose (models/EXPERIMENTS.md, "A pose encoder in the
     # estimated frame"). Its code x_p has x_c's size; E_p starts from E_x's weights.
     pose_encoder: bool = False
+    # E_p's per-point widths; None: E_x's (`shape_hidden`), and E_p starts from E_x's weights.
+    # Narrower widths cost the node less encoder CPU; E_p then starts from random weights.
+    pose_hidden: tuple[int, ...] | None = None
 
     def validate(self) -> None:
         if self.kind not in ("ftl", "std"):
@@ -103,7 +106,8 @@ class Autoencoder(nn.Module):
         self.config = config
         self.rotation_encoder = PointNet(config.rotation_hidden, 2 if config.rotation_head == "yaw" else 4)
         self.shape_encoder = PointNet(config.shape_hidden, config.latent)
-        self.pose_encoder = PointNet(config.shape_hidden, config.latent) if config.pose_encoder else None
+        self.pose_encoder = (PointNet(config.pose_hidden or config.shape_hidden, config.latent)
+                             if config.pose_encoder else None)
         k = config.decoder_width
         self.decoder = mlp(config.latent, (k, 2 * k, 4 * k), 3 * config.points)
 

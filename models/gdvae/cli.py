@@ -49,7 +49,9 @@ def apply_setting(chosen, assignment: str) -> None:
         raise SystemExit(f"--set {assignment!r}: {section} has no field {field!r} (fields: {', '.join(fields)})")
     current = getattr(target, field)
     try:
-        if isinstance(current, bool):
+        if "tuple" in str(fields[field].type):  # widths: comma-separated integers
+            value = tuple(int(part) for part in text.split(","))
+        elif isinstance(current, bool):
             if text.lower() not in ("true", "false"):
                 raise ValueError("expected true or false")
             value = text.lower() == "true"

@@ -129,7 +129,8 @@ def architecture(manifest: dict, rotation_head: str):
     chosen.ae = replace(chosen.ae, points=sizes["points"], latent=sizes["x_c"], rotation_head=rotation_head,
                         supervised=model.get("supervision", "supervised") == "supervised",
                         full_rotations=manifest["units"].get("rotation_mode") == "so3",
-                        pose_encoder=bool(model.get("pose_encoder", False)))
+                        pose_encoder=bool(model.get("pose_encoder", False)),
+                        pose_hidden=tuple(model["pose_hidden"]) if model.get("pose_hidden") else None)
     chosen.vae = replace(chosen.vae, latent=sizes["x_c"], spectrum=sizes["spectrum"], n_extrinsic=sizes["z_E"],
                          n_rotation=sizes["z_R"], pose_input=sizes["x_c"] if chosen.ae.pose_encoder else 0)
     chosen.spectrum_count = sizes["spectrum"]

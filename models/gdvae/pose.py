@@ -63,7 +63,7 @@ def train_pose(ae, sampler, truths: list[dict], chosen, state: dict, save, progr
              ", ".join(f"{100 * share:.0f}% ({name})" for name, share in targets.explained.items()))
     heads = nn.Linear(ae.config.latent, targets.components * len(targets.families)).to(device)
     start = state["iteration"]
-    if start == 0 and "pose_heads" not in state:
+    if start == 0 and "pose_heads" not in state and ae.config.pose_hidden in (None, ae.config.shape_hidden):
         ae.pose_encoder.load_state_dict(ae.shape_encoder.state_dict())
     optimizer = torch.optim.Adam([*ae.pose_encoder.parameters(), *heads.parameters()], lr=chosen.pose_learning_rate)
     if "pose_heads" in state:

@@ -308,7 +308,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         source_recipe = json.loads((Path(init_from) / "recipe.json").read_text())
         source_ae = AEConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in source_recipe["ae"].items()})
         # A pose encoder may be added to the source's AE (trained here, from its E_x), not removed.
-        source_ae = replace(source_ae, pose_encoder=source_ae.pose_encoder or chosen.ae.pose_encoder)
+        if chosen.ae.pose_encoder and not source_ae.pose_encoder:
+            source_ae = replace(source_ae, pose_encoder=True, pose_hidden=chosen.ae.pose_hidden)
         if source_ae != chosen.ae:
             log.info("the AE configuration is %s's (reused with its weights)", init_from)
         chosen.ae = source_ae

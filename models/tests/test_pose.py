@@ -100,3 +100,19 @@ def test_a_pose_encoder_added_to_a_trained_model_feeds_z_e_and_survives_export_a
                            timeout=120)
     assert shown.returncode == 0, shown.stderr
     assert "z_E from a pose encoder" in shown.stdout
+
+
+def test_a_narrower_pose_encoder_starts_afresh_and_its_widths_travel_in_the_bundle(paired_dataset, tmp_path):
+    source, run, bundle = tmp_path / "source", tmp_path / "run", tmp_path / "bundle"
+    assert main(["train", str(paired_dataset), "--out", str(source), "--recipe", "smoke", "--regime", "paired",
+                 "--ae", "std", "--set", "recipe.vae_batch=24", "--stop-after", "bank"]) == 0
+    assert main(["train", str(paired_dataset), "--out", str(run), "--recipe", "smoke", "--regime", "paired",
+                 "--init-from", str(source), "--rebuild-bank", "--set", "ae.pose_encoder=true",
+                 "--set", "ae.pose_hidden=8,12", "--set", "recipe.vae_batch=24"]) == 0
+    _, ae, _, _ = load_run(run)
+    assert [layer.out_channels for layer in ae.pose_encoder.shared if isinstance(layer, torch.nn.Conv1d)] == [8, 12]
+    assert main(["export", str(run), "--out", str(bundle)]) == 0
+    assert json.loads((bundle / "manifest.json").read_text())["model"]["pose_hidden"] == [8, 12]
+    assert import_bundle(bundle, tmp_path / "imported")["parity_max_diff"] < 1e-4
+    _, imported, _, _ = load_run(tmp_path / "imported")
+    assert imported.config.pose_hidden == (8, 12)
