@@ -280,7 +280,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
           stop_after: str | None = None, init_from: str | Path | None = None, rebuild_bank: bool = False,
           continue_ae: int = 0, device: str = "cpu", limits: StageLimits | None = None,
           loader_workers: int = 0, pose_dataset: MeshDataset | None = None) -> dict:
-    """Runs (or resumes) the three stages. Returns the trained modules.
+    """Runs (or resumes) the stages: AE, pose (with a pose encoder), code bank, VAE. Returns the
+    trained modules.
 
     `init_from`: another run whose AE and code bank this run reuses (it starts at the VAE stage),
     so that two VAE regimes can be compared on exactly the same autoencoder. `rebuild_bank`: reuse
@@ -307,7 +308,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if init_from is not None:  # the reused AE is the source's: its configuration and how it was trained
         source_recipe = json.loads((Path(init_from) / "recipe.json").read_text())
         source_ae = AEConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in source_recipe["ae"].items()})
-        # A pose encoder may be added to the source's AE (trained here, from its E_x), not removed.
+        # A pose encoder may be added to the source's AE (the pose stage trains it here), not removed.
         if chosen.ae.pose_encoder and not source_ae.pose_encoder:
             source_ae = replace(source_ae, pose_encoder=True, pose_hidden=chosen.ae.pose_hidden)
         if source_ae != chosen.ae:

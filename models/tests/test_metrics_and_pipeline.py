@@ -67,8 +67,10 @@ def test_recipe_overrides_are_typed_and_unknown_fields_refused():
     apply_setting(chosen, "recipe.bank_copies=3")
     apply_setting(chosen, "recipe.bank_partial_views=0.5")  # None by default: an optional number
     assert (chosen.bank_copies, chosen.bank_partial_views) == (3, 0.5)
+    apply_setting(chosen, "ae.pose_hidden=32,64")  # widths: comma-separated integers
+    assert chosen.ae.pose_hidden == (32, 64)
     for bad in ("vae.omega_jacobain=1", "vea.omega_jacobian=1", "recipe.bank_copies=many", "vae.omega_jacobian", "ae.copies=two",
-                "vae.reconstruction_per_dimension=maybe", "ae.rotation_hidden=1"):
+                "vae.reconstruction_per_dimension=maybe", "ae.rotation_hidden=wide", "ae.pose_hidden=32,,64"):
         with pytest.raises(SystemExit):
             apply_setting(chosen, bad)
 
