@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .budget import budget_spent
 from .geometry import quaternion_to_matrix, random_rotation_matrices, rotate
 
 log = logging.getLogger(__name__)
@@ -78,9 +79,7 @@ def train_pose(ae, sampler, truths: list[dict], chosen, state: dict, save, progr
     total, started, last_save = chosen.pose_iterations, time.monotonic(), time.monotonic()
     iteration, budget_ended = start, False
     for iteration in range(start, total):
-        if budget_seconds is not None and time.monotonic() - started > budget_seconds:
-            log.info("pose: time budget of %.0f s reached at iteration %d of %d; the stage ends here",
-                     budget_seconds, iteration, total)
+        if budget_spent("pose", budget_seconds, started, iteration, total):
             budget_ended = True
             break
         meshes = torch.randint(0, len(sampler), (chosen.pose_batch,), generator=generator, device=device)

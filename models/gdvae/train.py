@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from .ae import AEConfig, Autoencoder, ae_loss, restore_batch_norms
+from .budget import budget_spent
 from .data import DepthCamera, MeshDataset
 from .geometry import chamfer, matrix_to_quaternion, quaternion_to_matrix, random_rotation_matrices, rotate
 from .paired import PairedBatches, Pairing
@@ -550,9 +551,7 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir, device, budget_s
     ae.train()
     iteration, budget_ended = start, False
     for iteration in range(start, total):
-        if budget_seconds is not None and time.monotonic() - started > budget_seconds:
-            log.info("ae: time budget of %.0f s reached at iteration %d of %d; the stage ends here",
-                     budget_seconds, iteration, total)
+        if budget_spent("ae", budget_seconds, started, iteration, total):
             budget_ended = True
             break
         clouds, views = next(batches)
@@ -705,9 +704,7 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
     vae.train()
     iteration, budget_ended = start, False
     for iteration in range(start, total):
-        if budget_seconds is not None and time.monotonic() - started > budget_seconds:
-            log.info("vae: time budget of %.0f s reached at iteration %d of %d; the stage ends here",
-                     budget_seconds, iteration, total)
+        if budget_spent("vae", budget_seconds, started, iteration, total):
             budget_ended = True
             break
         if triples is not None:

@@ -1,7 +1,9 @@
-"""Shared fixtures for the kit's tests: small meshes and a tiny sim-format dataset."""
+"""Shared fixtures for the kit's tests: small meshes, a tiny sim-format dataset, and a tiny paired
+dataset written by the sim itself."""
 
 import json
 import pathlib
+import subprocess
 import sys
 
 import numpy as np
@@ -9,6 +11,34 @@ import pytest
 import trimesh
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+
+@pytest.fixture(scope="session")
+def paired_dataset(tmp_path_factory):
+    """A tiny dataset written by the sim with shared poses (two families, 4 subjects x 3 poses)."""
+    sim = pathlib.Path(__file__).resolve().parents[2] / "target" / "release" / "sim"
+    if not sim.exists():
+        pytest.skip("target/release/sim is not built (make binaries)")
+    out = tmp_path_factory.mktemp("paired")
+    subprocess.run([str(sim), "dataset", "--out", str(out), "--subjects", "4", "--poses", "3", "--shared-poses",
+                    "--split", "0.5,0,0.5", "--vertices", "800", "--seed", "3"], check=True, capture_output=True)
+    return out
+
+
+@pytest.fixture
+def inspect_with_node():
+    """`gdvae-node inspect-model BUNDLE --load`'s output (the test is skipped without the binary;
+    ONNX Runtime comes from the project's .venv beside the binary's ancestors, runtime.rs)."""
+    node = pathlib.Path(__file__).resolve().parents[2] / "target" / "release" / "gdvae-node"
+    if not node.exists():
+        pytest.skip("target/release/gdvae-node is not built (make binaries)")
+
+    def inspect(bundle) -> str:
+        shown = subprocess.run([str(node), "inspect-model", str(bundle), "--load"], capture_output=True, text=True,
+                               timeout=120)
+        assert shown.returncode == 0, shown.stderr
+        return shown.stdout
+    return inspect
 
 
 def write_mesh(path: pathlib.Path, mesh: trimesh.Trimesh) -> None:

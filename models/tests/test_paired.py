@@ -2,8 +2,6 @@
 smoke run through training, export and the node on a dataset with shared poses."""
 
 import json
-import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,8 +10,6 @@ import torch
 from gdvae.cli import main
 from gdvae.paired import PairedBatches, Pairing, contrast_masks, identity_contrast, swap_error
 from gdvae.vae import LatentVAE, VAEConfig, vae_loss
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def grid_truths(families=("quadruped", "biped"), subjects=4, poses=5, drop=()):
@@ -167,19 +163,7 @@ def test_the_paired_terms_train_the_vae_and_are_refused_without_a_paired_batch()
         VAEConfig(omega_swap=1.0).validate()  # GDVAE++ reconstructs from z~_I, not from x_c
 
 
-@pytest.fixture(scope="module")
-def paired_dataset(tmp_path_factory):
-    """A tiny dataset written by the sim with shared poses (two families, 4 subjects x 3 poses)."""
-    sim = ROOT / "target" / "release" / "sim"
-    if not sim.exists():
-        pytest.skip("target/release/sim is not built (make binaries)")
-    out = tmp_path_factory.mktemp("paired")
-    subprocess.run([str(sim), "dataset", "--out", str(out), "--subjects", "4", "--poses", "3", "--shared-poses",
-                    "--split", "0.5,0,0.5", "--vertices", "800", "--seed", "3"], check=True, capture_output=True)
-    return out
-
-
-def test_a_paired_smoke_run_trains_exports_and_the_node_loads_it(paired_dataset, tmp_path):
+def test_a_paired_smoke_run_trains_exports_and_the_node_loads_it(paired_dataset, tmp_path, inspect_with_node):
     run, bundle = tmp_path / "run", tmp_path / "bundle"
     assert main(["train", str(paired_dataset), "--out", str(run), "--recipe", "smoke", "--regime", "paired",
                  "--ae", "std", "--set", "recipe.vae_batch=24", "--set", "recipe.depth_camera_views=true"]) == 0
@@ -223,14 +207,7 @@ def test_a_paired_smoke_run_trains_exports_and_the_node_loads_it(paired_dataset,
     assert str(bundle) in taken["measured_on"]
     assert main(["export", str(kept), "--out", str(tmp_path / "both"), "--calibration-from", str(bundle),
                  "--calibrate", str(paired_dataset)]) != 0
-    node = ROOT / "target" / "release" / "gdvae-node"
-    if not node.exists():
-        pytest.skip("target/release/gdvae-node is not built (make binaries)")
-    # ONNX Runtime: the project's .venv beside the binary's ancestors (runtime.rs).
-    shown = subprocess.run([str(node), "inspect-model", str(bundle), "--load"], capture_output=True, text=True,
-                           timeout=120)
-    assert shown.returncode == 0, shown.stderr
-    assert "paired regime" in shown.stdout
+    assert "paired regime" in inspect_with_node(bundle)
 
 
 def test_the_paired_regime_refuses_a_dataset_without_shared_poses(tiny_dataset, tmp_path, capsys):

@@ -2,8 +2,6 @@
 model, whose z_E then reads it, through export, import and the node."""
 
 import json
-import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,8 +11,6 @@ from gdvae.cli import main
 from gdvae.import_bundle import import_bundle
 from gdvae.pose import PoseTargets
 from gdvae.train import load_run
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def truths(rng, family, count, joints):
@@ -40,19 +36,8 @@ def test_pose_targets_are_each_family_s_top_components_in_units_of_their_spread(
         PoseTargets(truths(rng, "biped", 3, 6), components=3)
 
 
-@pytest.fixture(scope="module")
-def paired_dataset(tmp_path_factory):
-    sim = ROOT / "target" / "release" / "sim"
-    if not sim.exists():
-        pytest.skip("target/release/sim is not built (make binaries)")
-    out = tmp_path_factory.mktemp("paired")
-    subprocess.run([str(sim), "dataset", "--out", str(out), "--subjects", "4", "--poses", "3", "--shared-poses",
-                    "--gait-fraction", "0.5", "--split", "0.5,0,0.5", "--vertices", "800", "--seed", "5"],
-                   check=True, capture_output=True)
-    return out
-
-
-def test_a_pose_encoder_added_to_a_trained_model_feeds_z_e_and_survives_export_and_import(paired_dataset, tmp_path):
+def test_a_pose_encoder_added_to_a_trained_model_feeds_z_e_and_survives_export_and_import(paired_dataset, tmp_path,
+                                                                                          inspect_with_node):
     source, run, bundle = tmp_path / "source", tmp_path / "run", tmp_path / "bundle"
     assert main(["train", str(paired_dataset), "--out", str(source), "--recipe", "smoke", "--regime", "paired",
                  "--ae", "std", "--set", "recipe.vae_batch=24", "--set", "recipe.depth_camera_views=true"]) == 0
@@ -93,13 +78,7 @@ def test_a_pose_encoder_added_to_a_trained_model_feeds_z_e_and_survives_export_a
     assert summary["parity_max_diff"] < 1e-4
     _, imported_ae, _, _ = load_run(tmp_path / "imported")
     assert imported_ae.pose_encoder is not None
-    node = ROOT / "target" / "release" / "gdvae-node"
-    if not node.exists():
-        pytest.skip("target/release/gdvae-node is not built (make binaries)")
-    shown = subprocess.run([str(node), "inspect-model", str(bundle), "--load"], capture_output=True, text=True,
-                           timeout=120)
-    assert shown.returncode == 0, shown.stderr
-    assert "z_E from a pose encoder" in shown.stdout
+    assert "z_E from a pose encoder" in inspect_with_node(bundle)
 
 
 def test_a_narrower_pose_encoder_starts_afresh_and_its_widths_travel_in_the_bundle(paired_dataset, tmp_path):
