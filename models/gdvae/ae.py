@@ -58,7 +58,7 @@ class AEConfig:
     # the frame the estimated heading gives it) and is trained on the sim's pose (pose.py), so that
     # the VAE's z_E reads a code that holds the pose. E_x of the STD kind must ignore the heading to
     # be rotation-invariant and carries little pose (models/EXPERIMENTS.md, "A pose encoder in the
-    # estimated frame"). Its code x_p has x_c's size; E_p starts from E_x's weights.
+    # estimated frame"). Its code x_p has x_c's size.
     pose_encoder: bool = False
     # E_p's per-point widths; None: E_x's (`shape_hidden`), and E_p starts from E_x's weights.
     # Narrower widths cost the node less encoder CPU; E_p then starts from random weights.

@@ -21,7 +21,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from .budget import budget_spent
 from .geometry import quaternion_to_matrix, random_rotation_matrices, rotate
 
 log = logging.getLogger(__name__)
@@ -54,9 +53,9 @@ class PoseTargets:
         self.rows = torch.from_numpy(rows)
 
 
-def train_pose(ae, sampler, truths: list[dict], chosen, state: dict, save, progress, device,
-               budget_seconds: float | None, stages) -> None:
-    """Trains `ae.pose_encoder` (from E_x's weights at the start) on views of the training meshes
+def train_pose(ae, sampler, truths: list[dict], chosen, state: dict, save, progress, device, stages) -> None:
+    """Trains `ae.pose_encoder` (from E_x's weights when it has E_x's widths, else from random
+    weights) on views of the training meshes
     as the code bank draws them (`chosen.bank_view_share()` camera views), each turned by a random
     yaw and turned back by E_r's estimate."""
     targets = PoseTargets(truths, chosen.pose_components)
@@ -77,11 +76,7 @@ def train_pose(ae, sampler, truths: list[dict], chosen, state: dict, save, progr
     sampler.reseed(chosen.seed + 3 + start)
     partial = chosen.bank_view_share()
     total, started, last_save = chosen.pose_iterations, time.monotonic(), time.monotonic()
-    iteration, budget_ended = start, False
     for iteration in range(start, total):
-        if budget_spent("pose", budget_seconds, started, iteration, total):
-            budget_ended = True
-            break
         meshes = torch.randint(0, len(sampler), (chosen.pose_batch,), generator=generator, device=device)
         with torch.no_grad():
             clouds = rotate(sampler.views(meshes, 1, partial),
@@ -100,7 +95,5 @@ def train_pose(ae, sampler, truths: list[dict], chosen, state: dict, save, progr
                   "optimizer": optimizer.state_dict()})
             ae.pose_encoder.train()
             last_save = time.monotonic()
-    else:
-        iteration = total
     ae.pose_encoder.eval()
-    stages.finish("pose", iteration, total, time.monotonic() - started, budget_ended)
+    stages.finish("pose", total, total, time.monotonic() - started, False)

@@ -46,10 +46,9 @@ class StageLimits:
 
     ae_seconds: float | None = None
     vae_seconds: float | None = None
-    pose_seconds: float | None = None
 
     def validate(self) -> None:
-        for name, value in (("AE", self.ae_seconds), ("VAE", self.vae_seconds), ("pose", self.pose_seconds)):
+        for name, value in (("AE", self.ae_seconds), ("VAE", self.vae_seconds)):
             if value is not None and not value > 0:
                 raise ValueError(f"{name} time budget {value} s: must be positive")
 
@@ -411,7 +410,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
                                         DepthCamera() if chosen.depth_camera_views else None, device)
             log.info("pose stage on %s: %d training meshes", posed.root, len(posed_indices))
         train_pose(ae, pose_sampler, [posed.items[i].truth for i in posed_indices], chosen, state,
-                   lambda extra: save({**extra, **carried}), progress, device, limits.pose_seconds, stages)
+                   lambda extra: save({**extra, **carried}), progress, device, stages)
         state = {"stage": "bank", "iteration": 0, **carried}
         save(state)
 
@@ -617,14 +616,16 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, 
         clouds = sampler.views(meshes.repeat_interleave(chosen.bank_copies), 1, partial).to(device)
         rotations = random_rotation_matrices(len(clouds), full=chosen.ae.full_rotations, device=device)
         inputs = rotate(clouds, rotations)
-        if chosen.bank_true_rotation and ae.config.supervised:
+        true_rotation = chosen.bank_true_rotation and ae.config.supervised
+        if true_rotation:
             q, used = matrix_to_quaternion(rotations), rotations
         else:
             q = ae.encode_rotation(inputs)
             used = quaternion_to_matrix(q)
         x_c, _ = ae.encode_shape(inputs, used)
         if ae.pose_encoder is not None:  # turned back by E_r's estimate, as the bundle's encoder does
-            poses.append(ae.encode_pose(inputs, quaternion_to_matrix(ae.encode_rotation(inputs))).cpu())
+            estimated = quaternion_to_matrix(ae.encode_rotation(inputs)) if true_rotation else used
+            poses.append(ae.encode_pose(inputs, estimated).cpu())
         qs.append(q.cpu())
         codes.append(x_c.cpu())
     spectrum = torch.from_numpy(np.repeat(spectra, chosen.bank_copies, 0)).float()
