@@ -6,6 +6,10 @@
 # `extra-N` (N = 1, 2, ...) are more held-apart seeds, for a choice between candidates whose
 # difference on `tune` is within what one set of 12 recordings can tell apart.
 #
+# `dense-tune`, `dense-holdout` and `dense-final` are the same scenarios at the sim's own defaults
+# for the camera (every depth pixel, a 4 m ground patch: about 120,000 points a frame, four times
+# the others'), from seeds of their own: what a dense sensor gives, floor noise included.
+#
 #   bench/tracking.sh SET [OUT_DIR] [-- evaluate options...]
 #
 # SET is tune, holdout or final. Recordings go to OUT_DIR/SET/ (default /work/data/bench-tracking, or
@@ -14,18 +18,24 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SET=${1:?usage: bench/tracking.sh tune|holdout|final|extra-N [OUT_DIR] [-- evaluate options]}
+SET=${1:?usage: bench/tracking.sh [dense-]tune|holdout|final|extra-N [OUT_DIR] [-- evaluate options]}
 shift
 OUT=${BENCH_DIR:-/work/data/bench-tracking}
 if [[ $# -gt 0 && $1 != "--" ]]; then OUT=$1; shift; fi
 [[ ${1:-} == "--" ]] && shift
+CAMERA=(--decimation 2 --ground-extent 1.5)
 case $SET in
+  dense-*) CAMERA=(--decimation 1 --ground-extent 4); KIND=${SET#dense-}; OFFSET=5000 ;;
+  *) KIND=$SET; OFFSET=0 ;;
+esac
+case $KIND in
   tune) BASE=100 ;;
   holdout) BASE=200 ;;
   final) BASE=300 ;;
-  extra-[1-9]|extra-[1-9][0-9]) BASE=$((1000 + 100 * ${SET#extra-})) ;;
-  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N)" >&2; exit 2 ;;
+  extra-[1-9]|extra-[1-9][0-9]) BASE=$((1000 + 100 * ${KIND#extra-})) ;;
+  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N, each also as dense-...)" >&2; exit 2 ;;
 esac
+BASE=$((BASE + OFFSET))
 
 SIM=./target/release/sim
 NODE=./target/release/gdvae-node
@@ -60,7 +70,7 @@ for scenario in "${SCENARIOS[@]}"; do
   RECORDINGS+=("$file")
   [[ -s $file ]] && continue
   args=(record --out "$file.partial" --motion "$motion" --families "$families" --duration "$duration"
-        --camera-distance "$distance" --decimation 2 --ground-extent 1.5 --seed "$seed")
+        --camera-distance "$distance" "${CAMERA[@]}" --seed "$seed")
   [[ -n $switches ]] && args+=(--switch-at "$switches")
   echo "bench/tracking.sh: $SIM ${args[*]}" >&2
   $SIM "${args[@]}" >&2

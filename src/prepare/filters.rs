@@ -32,6 +32,33 @@ fn inside(p: &[f32; 3], bounds: &[f32; 6]) -> bool {
     (0..3).all(|a| p[a] >= bounds[a] && p[a] <= bounds[a + 3])
 }
 
+/// How far below the ground (z = 0 of the gravity frame) [`floor_noise_cut`] looks for the
+/// floor's noise: deeper points are not the floor's (a wrong sensor pose, a pit) and are dropped.
+pub const FLOOR_BAND_M: f32 = 0.25;
+
+/// Fewer floor points below the ground than this and the crop's own floor is kept.
+const MIN_FLOOR_POINTS: usize = 32;
+
+/// Drops the floor's depth noise: points below the ground (z < 0, down to `FLOOR_BAND_M`) can only
+/// be the floor seen through the sensor's noise, and as a stereo camera's noise is about
+/// symmetric, their root-mean-square height is its spread. Keeps the points at or above
+/// max(`min_z`, `sigmas` x that spread) and returns that height. With fewer than
+/// `MIN_FLOOR_POINTS` below the ground, the cut is `min_z`.
+pub fn floor_noise_cut(points: &mut Vec<[f32; 3]>, min_z: f32, sigmas: f32) -> f32 {
+    let (mut squares, mut count) = (0.0f64, 0usize);
+    for p in points.iter().filter(|p| p[2] < 0.0 && p[2] >= -FLOOR_BAND_M) {
+        squares += (p[2] as f64).powi(2);
+        count += 1;
+    }
+    let cut = if count >= MIN_FLOOR_POINTS {
+        min_z.max(sigmas * (squares / count as f64).sqrt() as f32)
+    } else {
+        min_z
+    };
+    points.retain(|p| p[2] >= cut);
+    cut
+}
+
 /// x' = R (scale x) + t for every point of the sensor's cloud, keeping only those inside `crop`
 /// (when given): [`transform`] then [`crop`] in one pass, without a copy of the whole frame.
 pub fn transform_and_crop(

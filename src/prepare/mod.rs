@@ -14,8 +14,8 @@ mod sampling;
 mod settings;
 
 pub use filters::{
-    crop, euclidean_clusters, fit_ground, keep_largest_cluster, levelling, remove_outliers, remove_plane, transform,
-    transform_and_crop, voxel_grid, Plane, RangeStretch,
+    crop, euclidean_clusters, fit_ground, floor_noise_cut, keep_largest_cluster, levelling, remove_outliers,
+    remove_plane, transform, transform_and_crop, voxel_grid, Plane, RangeStretch, FLOOR_BAND_M,
 };
 pub use sampling::{
     centre_and_scale, farthest_point_sampling, farthest_point_sampling_plain, random_sampling, subsample,
@@ -233,13 +233,17 @@ impl Preparer {
         let estimate_ground = s.auto_ground || s.remove_ground;
         // One pass from the sensor's points to the cropped cloud in metres, unless the ground plane
         // must be found first (it levels the cloud before the crop, and lies partly outside it).
+        let bounds = s.crop_with_floor_band();
         let mut points = transform_and_crop(
             &frame.cloud.points,
             to_metres,
             rotation,
             translation,
-            s.crop.as_ref().filter(|_| !estimate_ground),
+            bounds.as_ref().filter(|_| !estimate_ground),
         );
+        if !estimate_ground {
+            self.cut_floor(&mut points);
+        }
         let input = (self.input_points > 0).then(|| {
             let every = frame.cloud.points.len().div_ceil(self.input_points).max(1);
             let decimated: Vec<[f32; 3]> = frame.cloud.points.iter().step_by(every).copied().collect();
@@ -262,6 +266,15 @@ impl Preparer {
             from_m: s.cluster_stretch_from_m,
         });
         Ok((points, input, seed, stretch))
+    }
+
+    /// The crop's floor raised above the floor's depth noise (`floor_noise_sigmas`), on a cloud
+    /// cropped with `crop_with_floor_band`.
+    fn cut_floor(&self, points: &mut Vec<[f32; 3]>) {
+        let s = &self.settings;
+        if let (true, Some(bounds)) = (s.floor_cut_on(), &s.crop) {
+            floor_noise_cut(points, bounds[2], s.floor_noise_sigmas);
+        }
     }
 
     /// N_p points of `points`, centred and scaled.
@@ -300,8 +313,9 @@ impl Preparer {
             }
             (plane, _) => plane,
         };
-        if let Some(bounds) = &s.crop {
+        if let Some(bounds) = &s.crop_with_floor_band() {
             crop(points, bounds);
+            self.cut_floor(points);
         }
         if let (true, Some(plane)) = (s.remove_ground, plane) {
             remove_plane(points, &plane, s.ground_tolerance_m);

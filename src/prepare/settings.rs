@@ -21,6 +21,12 @@ pub struct PrepareSettings {
     pub ransac_iterations: usize,
     /// Region of interest in the gravity frame (metres): [min_x, min_y, min_z, max_x, max_y, max_z].
     pub crop: Option<[f32; 6]>,
+    /// Raise the crop's floor (its min_z, when that is at or above the ground, z = 0) above the
+    /// floor's depth noise: to this many times the noise's spread, measured on every frame from
+    /// the points just below the ground, where nothing real lies (`prepare::floor_noise_cut`).
+    /// A dense sensor leaves thousands of noisy floor points above a fixed min_z, which join into
+    /// a sheet larger than the object. 0: the crop's min_z alone.
+    pub floor_noise_sigmas: f32,
     /// Reduce the cropped cloud to the centroid of each occupied cube of this edge (metres) before
     /// outliers, clusters and sampling, whose cost grows with the points. 0 keeps every point.
     pub voxel_grid_m: f32,
@@ -41,6 +47,25 @@ pub struct PrepareSettings {
     pub seed: u64,
 }
 
+impl PrepareSettings {
+    /// The crop to apply before [`floor_noise_cut`](super::floor_noise_cut): the configured one,
+    /// reaching `FLOOR_BAND_M` below the ground when the floor cut is on, so that the points it
+    /// measures the noise on pass; `None` without a crop.
+    pub(super) fn crop_with_floor_band(&self) -> Option<[f32; 6]> {
+        self.crop.map(|mut bounds| {
+            if self.floor_cut_on() {
+                bounds[2] = -super::FLOOR_BAND_M;
+            }
+            bounds
+        })
+    }
+
+    /// Whether the floor cut applies: on, with a crop whose floor is at or above the ground.
+    pub(super) fn floor_cut_on(&self) -> bool {
+        self.floor_noise_sigmas > 0.0 && self.crop.is_some_and(|c| c[2] >= 0.0)
+    }
+}
+
 impl Default for PrepareSettings {
     fn default() -> Self {
         Self {
@@ -51,6 +76,7 @@ impl Default for PrepareSettings {
             ground_tolerance_m: 0.02,
             ransac_iterations: 100,
             crop: None,
+            floor_noise_sigmas: 3.0,
             voxel_grid_m: 0.0,
             outliers: OutlierSettings::default(),
             cluster_m: 0.0,
@@ -107,6 +133,12 @@ impl PrepareSettings {
                     "prepare.crop {c:?} must be [min_x, min_y, min_z, max_x, max_y, max_z] with min < max"
                 ));
             }
+        }
+        if !(p.floor_noise_sigmas >= 0.0 && p.floor_noise_sigmas.is_finite()) {
+            return Err(format!(
+                "prepare.floor_noise_sigmas = {} must be >= 0 (0: off)",
+                p.floor_noise_sigmas
+            ));
         }
         if !(p.ground_tolerance_m > 0.0) || !(p.voxel_m > 0.0) || p.min_points == 0 {
             return Err("prepare.ground_tolerance_m, prepare.voxel_m and prepare.min_points must be positive".into());

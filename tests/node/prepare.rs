@@ -4,8 +4,8 @@
 use gdvae_node::cloud::{Frame, PointCloud, Unit};
 use gdvae_node::config::{OutlierMethod, OutlierSettings, PrepareSettings};
 use gdvae_node::prepare::{
-    crop, euclidean_clusters, fit_ground, keep_largest_cluster, levelling, remove_outliers, remove_plane, transform,
-    transform_and_crop, voxel_grid, PrepareError, Preparer, RangeStretch,
+    crop, euclidean_clusters, fit_ground, floor_noise_cut, keep_largest_cluster, levelling, remove_outliers,
+    remove_plane, transform, transform_and_crop, voxel_grid, PrepareError, Preparer, RangeStretch, FLOOR_BAND_M,
 };
 use nalgebra::{Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
@@ -255,6 +255,99 @@ fn the_preparer_converts_units_levels_crops_and_rejects_too_few_points() {
     assert_eq!(
         plain.prepare(&sparse).unwrap_err(),
         PrepareError::TooFewPoints { got: 10, minimum: 64 }
+    );
+}
+
+/// A dense sensor's view of the floor: `n` points over a 2.4 m square at z ~ N(0, sigma), and a
+/// standing 0.3 x 0.3 x 0.8 m box (2,000 points) on it at (0.3, -0.2).
+fn noisy_floor_and_box(rng: &mut ChaCha8Rng, n: usize, sigma: f32) -> Vec<[f32; 3]> {
+    let gaussian = |rng: &mut ChaCha8Rng| {
+        // Box-Muller: the sum of uniforms would have no tails.
+        let (u, v): (f32, f32) = (rng.random_range(1e-7..1.0), rng.random_range(0.0..1.0));
+        (-2.0 * u.ln()).sqrt() * (std::f32::consts::TAU * v).cos()
+    };
+    let mut points: Vec<[f32; 3]> = (0..n)
+        .map(|_| {
+            [
+                rng.random_range(-1.2..1.2),
+                rng.random_range(-1.2..1.2),
+                sigma * gaussian(rng),
+            ]
+        })
+        .collect();
+    points.extend((0..2000).map(|_| {
+        [
+            0.3 + rng.random_range(-0.15..0.15),
+            -0.2 + rng.random_range(-0.15..0.15),
+            rng.random_range(0.0..0.8),
+        ]
+    }));
+    points
+}
+
+#[test]
+fn the_floor_cut_rises_with_the_floors_noise_measured_below_the_ground() {
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    for sigma in [0.005f32, 0.02, 0.04] {
+        let mut points = noisy_floor_and_box(&mut rng, 60_000, sigma);
+        points.retain(|p| p[2] >= -FLOOR_BAND_M);
+        let cut = floor_noise_cut(&mut points, 0.02, 3.0);
+        assert!(
+            (cut - (3.0 * sigma).max(0.02)).abs() < 0.1 * (3.0 * sigma).max(0.02),
+            "sigma {sigma}: cut at {cut}"
+        );
+        let floor_left = points
+            .iter()
+            .filter(|p| !(p[0] > 0.15 && p[0] < 0.45 && p[1] > -0.35 && p[1] < -0.05))
+            .count();
+        // Above 3 sigma: 0.13 % of a Gaussian's points, 80 of 60,000 (a fixed 2 cm keeps 16 % at sigma 2 cm).
+        assert!(
+            floor_left < 150,
+            "sigma {sigma}: {floor_left} floor points above the cut"
+        );
+        assert!(
+            points.len() > 1700,
+            "sigma {sigma}: the box keeps most of its points ({})",
+            points.len() - floor_left
+        );
+    }
+    // Nothing below the ground (a cloud already cropped there): the crop's own floor.
+    let mut above: Vec<[f32; 3]> = (0..500).map(|i| [0.0, 0.0, 0.01 + i as f32 * 1e-3]).collect();
+    assert_eq!(floor_noise_cut(&mut above, 0.02, 3.0), 0.02);
+    let expected = (0..500).filter(|i| 0.01 + *i as f32 * 1e-3 >= 0.02).count();
+    assert_eq!(above.len(), expected);
+}
+
+/// The sim's default recording (every depth pixel, a 4 m ground patch) left thousands of noisy
+/// floor points above a crop 2 cm over the ground, linked into a sheet larger than the subject:
+/// prepare kept the sheet. With the floor cut (on by default) it keeps the box.
+#[test]
+fn on_a_dense_noisy_floor_prepare_keeps_the_object_not_the_floor() {
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let points = noisy_floor_and_box(&mut rng, 120_000, 0.03);
+    let settings = |floor_noise_sigmas| PrepareSettings {
+        crop: Some([-1.2, -1.2, 0.02, 1.2, 1.2, 2.5]),
+        voxel_grid_m: 0.03,
+        cluster_m: 0.06,
+        floor_noise_sigmas,
+        ..PrepareSettings::default()
+    };
+    let frame = frame_of("s", 0, Unit::Metre, points);
+    let centre = |floor_noise_sigmas| {
+        Preparer::new(&settings(floor_noise_sigmas), 256, 2.0)
+            .prepare(&frame)
+            .unwrap()
+            .centre_m
+    };
+    let with_cut = centre(PrepareSettings::default().floor_noise_sigmas);
+    assert!(
+        (with_cut[0] - 0.3).abs() < 0.03 && (with_cut[1] + 0.2).abs() < 0.03 && (with_cut[2] - 0.45).abs() < 0.08,
+        "the box's centre, got {with_cut:?}"
+    );
+    let without = centre(0.0);
+    assert!(
+        (without[0] - 0.3).abs() > 0.3 || (without[1] + 0.2).abs() > 0.3,
+        "without the cut the floor's sheet wins (the test's premise), got {without:?}"
     );
 }
 
