@@ -39,22 +39,42 @@ pub const FLOOR_BAND_M: f32 = 0.25;
 /// Fewer floor points below the ground than this and the crop's own floor is kept.
 const MIN_FLOOR_POINTS: usize = 32;
 
-/// Drops the floor's depth noise: points below the ground (z < 0, down to `FLOOR_BAND_M`) can only
-/// be the floor seen through the sensor's noise, and as a stereo camera's noise is about
-/// symmetric, their root-mean-square height is its spread. Keeps the points at or above
-/// max(`min_z`, `sigmas` x that spread) and returns that height. With fewer than
-/// `MIN_FLOOR_POINTS` below the ground, the cut is `min_z`.
-pub fn floor_noise_cut(points: &mut Vec<[f32; 3]>, min_z: f32, sigmas: f32) -> f32 {
-    let (mut squares, mut count) = (0.0f64, 0usize);
-    for p in points.iter().filter(|p| p[2] < 0.0 && p[2] >= -FLOOR_BAND_M) {
-        squares += (p[2] as f64).powi(2);
-        count += 1;
+/// The floor's depth noise, measured on the points below the ground (z < 0, down to
+/// `FLOOR_BAND_M`): they can only be the floor seen through the sensor's noise, and as a stereo
+/// camera's noise is about symmetric, their root-mean-square height is its spread.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct FloorNoise {
+    squares: f64,
+    count: usize,
+}
+
+impl FloorNoise {
+    /// Counts a point's height when it lies in the band below the ground.
+    #[inline]
+    pub fn add(&mut self, z: f32) {
+        if z < 0.0 && z >= -FLOOR_BAND_M {
+            self.squares += (z as f64) * (z as f64);
+            self.count += 1;
+        }
     }
-    let cut = if count >= MIN_FLOOR_POINTS {
-        min_z.max(sigmas * (squares / count as f64).sqrt() as f32)
-    } else {
-        min_z
-    };
+
+    /// max(`min_z`, `sigmas` x the noise's spread); `min_z` with fewer than `MIN_FLOOR_POINTS`
+    /// measured.
+    pub fn cut(&self, min_z: f32, sigmas: f32) -> f32 {
+        if self.count < MIN_FLOOR_POINTS {
+            return min_z;
+        }
+        min_z.max(sigmas * (self.squares / self.count as f64).sqrt() as f32)
+    }
+}
+
+/// Drops the floor's depth noise from `points` (which reach below the ground, as a crop lowered to
+/// `FLOOR_BAND_M` leaves them): keeps the points at or above [`FloorNoise::cut`] and returns that
+/// height.
+pub fn floor_noise_cut(points: &mut Vec<[f32; 3]>, min_z: f32, sigmas: f32) -> f32 {
+    let mut noise = FloorNoise::default();
+    points.iter().for_each(|p| noise.add(p[2]));
+    let cut = noise.cut(min_z, sigmas);
     points.retain(|p| p[2] >= cut);
     cut
 }
@@ -77,6 +97,34 @@ pub fn transform_and_crop(
         Some(bounds) => moved.filter(|p| inside(p, bounds)).collect(),
         None => moved.collect(),
     }
+}
+
+/// [`transform_and_crop`] that also measures the floor's noise on the points within the crop's
+/// x and y below its box, down to `FLOOR_BAND_M` under the ground, without keeping them.
+pub fn transform_crop_and_measure_floor(
+    points: &[[f32; 3]],
+    scale: f32,
+    rotation: &Matrix3<f32>,
+    translation: &Vector3<f32>,
+    bounds: &[f32; 6],
+    noise: &mut FloorNoise,
+) -> Vec<[f32; 3]> {
+    let rotation = rotation * scale;
+    let mut kept = Vec::new();
+    for p in points {
+        let v = rotation * Vector3::from(*p) + translation;
+        let p = [v.x, v.y, v.z];
+        if p[0] >= bounds[0] && p[0] <= bounds[3] && p[1] >= bounds[1] && p[1] <= bounds[4] {
+            if p[2] >= bounds[2] {
+                if p[2] <= bounds[5] {
+                    kept.push(p);
+                }
+            } else {
+                noise.add(p[2]);
+            }
+        }
+    }
+    kept
 }
 
 /// `x.floor() as i64` for the finite |x| < 2^40 the grids allow, without a call into libm (which

@@ -15,7 +15,8 @@ mod settings;
 
 pub use filters::{
     crop, euclidean_clusters, fit_ground, floor_noise_cut, keep_largest_cluster, levelling, remove_outliers,
-    remove_plane, transform, transform_and_crop, voxel_grid, Plane, RangeStretch, FLOOR_BAND_M,
+    remove_plane, transform, transform_and_crop, transform_crop_and_measure_floor, voxel_grid, FloorNoise, Plane,
+    RangeStretch, FLOOR_BAND_M,
 };
 pub use sampling::{
     centre_and_scale, farthest_point_sampling, farthest_point_sampling_plain, random_sampling, subsample,
@@ -233,17 +234,31 @@ impl Preparer {
         let estimate_ground = s.auto_ground || s.remove_ground;
         // One pass from the sensor's points to the cropped cloud in metres, unless the ground plane
         // must be found first (it levels the cloud before the crop, and lies partly outside it).
-        let bounds = s.crop_with_floor_band();
-        let mut points = transform_and_crop(
-            &frame.cloud.points,
-            to_metres,
-            rotation,
-            translation,
-            bounds.as_ref().filter(|_| !estimate_ground),
-        );
-        if !estimate_ground {
-            self.cut_floor(&mut points);
-        }
+        let mut points = match (&s.crop, estimate_ground) {
+            (Some(bounds), false) if s.floor_cut_on() => {
+                let mut noise = FloorNoise::default();
+                let mut points = transform_crop_and_measure_floor(
+                    &frame.cloud.points,
+                    to_metres,
+                    rotation,
+                    translation,
+                    bounds,
+                    &mut noise,
+                );
+                let cut = noise.cut(bounds[2], s.floor_noise_sigmas);
+                if cut > bounds[2] {
+                    points.retain(|p| p[2] >= cut);
+                }
+                points
+            }
+            (bounds, _) => transform_and_crop(
+                &frame.cloud.points,
+                to_metres,
+                rotation,
+                translation,
+                bounds.as_ref().filter(|_| !estimate_ground),
+            ),
+        };
         let input = (self.input_points > 0).then(|| {
             let every = frame.cloud.points.len().div_ceil(self.input_points).max(1);
             let decimated: Vec<[f32; 3]> = frame.cloud.points.iter().step_by(every).copied().collect();

@@ -5,9 +5,10 @@ use gdvae_node::cloud::{Frame, PointCloud, Unit};
 use gdvae_node::config::{OutlierMethod, OutlierSettings, PrepareSettings};
 use gdvae_node::prepare::{
     crop, euclidean_clusters, fit_ground, floor_noise_cut, keep_largest_cluster, levelling, remove_outliers,
-    remove_plane, transform, transform_and_crop, voxel_grid, PrepareError, Preparer, RangeStretch, FLOOR_BAND_M,
+    remove_plane, transform, transform_and_crop, transform_crop_and_measure_floor, voxel_grid, FloorNoise,
+    PrepareError, Preparer, RangeStretch, FLOOR_BAND_M,
 };
-use nalgebra::{Rotation3, Vector3};
+use nalgebra::{Matrix3, Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -311,6 +312,35 @@ fn the_floor_cut_rises_with_the_floors_noise_measured_below_the_ground() {
             points.len() - floor_left
         );
     }
+    // In one pass with the transform and the crop, keeping none of the points below the crop.
+    let mut points = noisy_floor_and_box(&mut rng, 60_000, 0.02);
+    let lift = Vector3::new(0.0, 0.0, 1.0);
+    let sensor: Vec<[f32; 3]> = points
+        .iter()
+        .map(|p| [p[0] * 1000.0, p[1] * 1000.0, (p[2] - 1.0) * 1000.0])
+        .collect();
+    let bounds = [-1.0, -1.0, 0.02, 1.0, 1.0, 2.0];
+    let mut noise = FloorNoise::default();
+    let mut one_pass =
+        transform_crop_and_measure_floor(&sensor, 1e-3, &Matrix3::identity(), &lift, &bounds, &mut noise);
+    let cut = noise.cut(0.02, 3.0);
+    one_pass.retain(|p| p[2] >= cut);
+    let mut two_steps = transform_and_crop(
+        &sensor,
+        1e-3,
+        &Matrix3::identity(),
+        &lift,
+        Some(&[-1.0, -1.0, -FLOOR_BAND_M, 1.0, 1.0, 2.0]),
+    );
+    assert_eq!(floor_noise_cut(&mut two_steps, 0.02, 3.0), cut);
+    assert_eq!(one_pass, two_steps);
+    points.retain(|p| p[2] >= cut && p[0].abs() <= 1.0 && p[1].abs() <= 1.0);
+    assert!(
+        one_pass.len().abs_diff(points.len()) < 10,
+        "{} against {}",
+        one_pass.len(),
+        points.len()
+    );
     // Nothing below the ground (a cloud already cropped there): the crop's own floor.
     let mut above: Vec<[f32; 3]> = (0..500).map(|i| [0.0, 0.0, 0.01 + i as f32 * 1e-3]).collect();
     assert_eq!(floor_noise_cut(&mut above, 0.02, 3.0), 0.02);
