@@ -68,7 +68,7 @@ class Views:
         with torch.no_grad():
             for chunk in self.meshes.split(512):
                 parts.append(encode_all(ae, vae, self.clouds(chunk), torch.eye(3).expand(len(chunk), 3, 3), None))
-        return {key: torch.cat([p[key] for p in parts]).numpy() for key in ("x_c", "mu_E")}
+        return {key: torch.cat([p[key] for p in parts]).numpy() for key in ("x_c", "mu_E", "mu_I")}
 
     def theta(self, family: int) -> np.ndarray:
         return np.array([t["theta"] for t, f in zip(self.truth, self.family) if f == family])
@@ -84,6 +84,48 @@ def retrieval_ratio(codes: np.ndarray, theta: np.ndarray, subjects: np.ndarray) 
         if len(others) and np.median(truth) > 0:
             ratios.append(truth[np.argmin(np.linalg.norm(codes[others] - codes[i], axis=1))] / np.median(truth))
     return float(np.median(ratios)) if ratios else float("nan")
+
+
+def subject_auc(codes: np.ndarray, subjects: np.ndarray) -> float:
+    """The probability that two views of one subject are nearer in `codes` than two views of two
+    subjects (of the same family: the caller passes one family's rows)."""
+    distances = np.linalg.norm(codes[:, None] - codes[None], axis=-1)
+    upper = np.triu_indices(len(codes), 1)
+    same = (subjects[:, None] == subjects[None])[upper]
+    inside, between = np.sort(distances[upper][same]), distances[upper][~same]
+    return float(np.searchsorted(inside, between, side="left").mean() / len(inside))
+
+
+def identity(args) -> None:
+    """Same-family subject AUC of mu_I and x_c on TEST's single views, as they are and whitened by
+    their within-subject covariance per family, fitted on FIT's training meshes (`--fit`, three
+    views each): how much a fixed metric that ignores what the view and the pose move would give."""
+    _, ae, vae, _ = load_run(args.run)
+    views = Views(args.run, ae.config.points, args.test, "test", 1, args.seed + 1)
+    codes = views.codes(ae, vae)
+    fit = Views(args.run, ae.config.points, args.fit, "train", 3, args.seed) if args.fit else None
+    fit_codes = fit.codes(ae, vae) if fit else None
+    for f, family in enumerate(FAMILIES):
+        rows = views.family == f
+        figures = []
+        for key in ("mu_I", "x_c"):
+            figures.append(f"{key} {subject_auc(codes[key][rows], views.subject[rows]):.3f}")
+            if fit is not None:
+                mine = fit.family == f
+                if args.fit_subjects:
+                    mine &= np.isin(fit.subject, np.unique(fit.subject[mine])[:args.fit_subjects])
+                x, subjects = fit_codes[key][mine], fit.subject[mine]
+                centred = x - np.stack([x[subjects == s].mean(0) for s in subjects])
+                within = centred.T @ centred / len(x) + 1e-6 * np.eye(x.shape[1])
+                values, vectors = np.linalg.eigh(within)
+                whiten = vectors / np.sqrt(np.maximum(values, 1e-9 * values.max()))
+                means = np.stack([x[subjects == s].mean(0) for s in subjects]) - x.mean(0)
+                between = (means @ whiten).T @ (means @ whiten) / len(x)
+                _, axes = np.linalg.eigh(between)
+                for k in (4, 8, 16):
+                    lda = whiten @ axes[:, ::-1][:, :k]
+                    figures.append(f"LDA{k} {subject_auc(codes[key][rows] @ lda, views.subject[rows]):.3f}")
+        print(f"{family:10s} same-family subject AUC, single views: " + ", ".join(figures))
 
 
 def r2(predicted, target) -> float:
@@ -155,8 +197,9 @@ def phase_probe(family, key, fit, test, fit_codes, test_codes, f) -> None:
               f"{len(x)} / {len(xt)} views)")
 
 
-def encoder(args) -> None:
-    ae, _, fit, test = run_and_views(args, 1)
+def pose_targets(fit, test):
+    """Theta on its top 10 principal components per family (fitted on FIT), standardised, and the
+    measure: held-out retrieval of the true pose by the head's output."""
     components = {}
     for f, family in enumerate(FAMILIES):
         theta = fit.theta(f)
@@ -170,7 +213,39 @@ def encoder(args) -> None:
     def targets(views):
         return torch.tensor(np.array([((np.array(t["theta"]) - components[f][0]) @ components[f][1].T) / components[f][2]
                                       for t, f in zip(views.truth, views.family)]), dtype=torch.float32)
-    fit_targets, test_targets = targets(fit), targets(test)
+
+    def measure(predicted):
+        return "retrieval " + " / ".join(
+            f"{retrieval_ratio(predicted[test.family == f], test.theta(f), test.subject[test.family == f]):.2f}"
+            for f in range(len(FAMILIES)))
+    return targets(fit), targets(test), measure
+
+
+def beta_targets(fit, test):
+    """The sim's shape parameters (beta) per family, standardised on FIT (zero-padded to the widest
+    family's), and the measure: same-family subject AUC of the head's output on single views."""
+    width = max(len(t["beta"]) for t in fit.truth)
+    stats = {}
+    for f in range(len(FAMILIES)):
+        beta = np.array([t["beta"] for t, g in zip(fit.truth, fit.family) if g == f])
+        stats[f] = (beta.mean(0), beta.std(0) + 1e-9)
+
+    def targets(views):
+        rows = np.zeros((len(views.truth), width), np.float32)
+        for i, (t, f) in enumerate(zip(views.truth, views.family)):
+            rows[i, :len(t["beta"])] = (np.array(t["beta"]) - stats[f][0]) / stats[f][1]
+        return torch.from_numpy(rows)
+
+    def measure(predicted):
+        return "subject AUC " + " / ".join(
+            f"{subject_auc(predicted[test.family == f], test.subject[test.family == f]):.3f}" for f in range(len(FAMILIES)))
+    return targets(fit), targets(test), measure
+
+
+def encoder(args) -> None:
+    ae, _, fit, test = run_and_views(args, 1)
+    fit_targets, test_targets, held_out = (beta_targets if args.target == "beta" else pose_targets)(fit, test)
+    width = fit_targets.shape[1]
 
     def framed(views, meshes):
         """The encoder's input: a view turned by a random yaw (`any`), left facing the way the mesh
@@ -185,20 +260,18 @@ def encoder(args) -> None:
         return clouds
     ae.rotation_encoder.eval()
     test_clouds = framed(test, test.meshes)
-    heads = torch.nn.Linear(ae.config.latent, 10 * len(FAMILIES))
+    heads = torch.nn.Linear(ae.config.latent, width * len(FAMILIES))
     optimizer = torch.optim.Adam([*ae.shape_encoder.parameters(), *heads.parameters()], args.learning_rate)
 
     def code(clouds, family):
-        return heads(ae.shape_encoder(clouds)).view(len(clouds), len(FAMILIES), 10)[torch.arange(len(clouds)), family]
+        return heads(ae.shape_encoder(clouds)).view(len(clouds), len(FAMILIES), width)[torch.arange(len(clouds)), family]
 
     def measure() -> str:
         ae.shape_encoder.eval()
         with torch.no_grad():
             predicted = code(test_clouds, torch.from_numpy(test.family))
         ae.shape_encoder.train()
-        ratios = [retrieval_ratio(predicted.numpy()[test.family == f], test.theta(f), test.subject[test.family == f])
-                  for f in range(len(FAMILIES))]
-        return f"held-out R2 {r2(predicted.numpy(), test_targets.numpy()):.2f}, retrieval " + " / ".join(f"{r:.2f}" for r in ratios)
+        return f"held-out R2 {r2(predicted.numpy(), test_targets.numpy()):.2f}, {held_out(predicted.numpy())}"
 
     step, spent = 0, 0.0
     checkpoint = Path(args.checkpoint) if args.checkpoint else None
@@ -247,6 +320,12 @@ def main() -> None:
     one.add_argument("run")
     one.add_argument("test", help="a sim dataset of fresh subjects and poses (its test split)")
     one.set_defaults(handler=retrieval)
+    one = commands.add_parser("identity")
+    one.add_argument("run")
+    one.add_argument("test", help="a sim dataset of fresh subjects in several poses (its test split)")
+    one.add_argument("--fit", help="a sim dataset whose training meshes fit the linear discriminant")
+    one.add_argument("--fit-subjects", type=int, help="fit on this many of its subjects per family (default: all)")
+    one.set_defaults(handler=identity)
     for name, handler in (("probe", probe), ("encoder", encoder)):
         command = commands.add_parser(name)
         command.add_argument("run")
@@ -255,6 +334,9 @@ def main() -> None:
         if name == "encoder":
             command.add_argument("--seconds", type=float, default=600.0)
             command.add_argument("--learning-rate", type=float, default=1e-4)
+            command.add_argument("--target", choices=("theta", "beta"), default="theta",
+                                 help="what the head predicts: the pose (theta's top 10 components) or the "
+                                 "subject's shape (beta), measured by pose retrieval or same-family subject AUC")
             command.add_argument("--frame", choices=("any", "true", "estimated"), default="any",
                                  help="the views' heading: any yaw (the encoder must ignore it), the mesh's own "
                                  "(known), or turned back by the autoencoder's rotation estimate")

@@ -309,6 +309,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         source_recipe = json.loads((Path(init_from) / "recipe.json").read_text())
         source_ae = AEConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in source_recipe["ae"].items()})
         # A pose encoder may be added to the source's AE (the pose stage trains it here), not removed.
+        source_has_pose = source_ae.pose_encoder
         if chosen.ae.pose_encoder and not source_ae.pose_encoder:
             source_ae = replace(source_ae, pose_encoder=True, pose_hidden=chosen.ae.pose_hidden)
         if source_ae != chosen.ae:
@@ -328,6 +329,9 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         posed = pose_dataset or dataset
         summary["pose_stage"] = {"dataset": str(posed.root), "train_meshes": len(posed.indices("train")),
                                  "iterations": chosen.pose_iterations, "components": chosen.pose_components}
+        if init_from is not None and source_has_pose:  # E_p comes with the source's AE, not taught here
+            source_summary = json.loads((Path(init_from) / "dataset.json").read_text())
+            summary["pose_stage"] = source_summary.get("pose_stage", {"dataset": f"(the AE of {init_from})"})
     (run_dir / "dataset.json").write_text(json.dumps(summary, indent=2))
     torch.manual_seed(chosen.seed)
     checkpoint_path = run_dir / "checkpoint.pt"
@@ -343,9 +347,9 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         if "bank" not in source and not (continue_ae > 0 or rebuild_bank):
             raise ValueError(f"{init_from}: it has no code bank (an imported bundle?): "
                              "start from its AE with --rebuild-bank or --continue-ae N")
-        if chosen.vae.keep_intrinsic and continue_ae > 0:
-            raise ValueError("keep_intrinsic keeps the source's z_I encoder, which reads its AE's codes: "
-                             "the AE cannot be continued in the same run")
+        if chosen.vae.keeps_start and continue_ae > 0:
+            raise ValueError("keep_intrinsic / keep_extrinsic keep one of the source's code encoders, which reads "
+                             "its AE's codes: the AE cannot be continued in the same run")
         adds_pose = chosen.ae.pose_encoder and not any(k.startswith("pose_encoder.") for k in source["ae"])
         if adds_pose and not (continue_ae > 0 or rebuild_bank):
             raise ValueError(f"{init_from}: its AE has no pose encoder; one is trained here before a new code bank: "
@@ -359,14 +363,15 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         else:
             state = {"stage": "vae", "iteration": 0, "ae": source["ae"], "bank": source["bank"]}
             log.info("starting from the AE and code bank of %s", init_from)
-        if chosen.vae.keep_intrinsic and {"vae", "imported_vae"} & source.keys():
+        if chosen.vae.keeps_start and {"vae", "imported_vae"} & source.keys():
             state["start_vae"] = source.get("vae", source.get("imported_vae"))
-            log.info("z_I's encoder, the flow and the rotation branch are %s's, held fixed", init_from)
+            log.info("%s and the rotation branch are %s's, held fixed",
+                     "z_I's encoder, the flow" if chosen.vae.keep_intrinsic else "z_E's encoder", init_from)
     else:
         state = {"stage": "ae", "iteration": 0}
-    if chosen.vae.keep_intrinsic and "vae" not in state and "start_vae" not in state:
-        raise ValueError("vae.keep_intrinsic keeps a trained VAE's z_I encoder: start from a run (or an imported "
-                         "bundle) that has one, with --init-from")
+    if chosen.vae.keeps_start and "vae" not in state and "start_vae" not in state:
+        raise ValueError("vae.keep_intrinsic / keep_extrinsic keep a trained VAE's code encoder: start from a run "
+                         "(or an imported bundle) that has one, with --init-from")
     train_indices = dataset.indices("train")
     if not train_indices:
         raise ValueError(f"{dataset.root}: no training meshes (check splits.json)")
@@ -433,8 +438,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if "vae" in state:
         vae.load_state_dict(state["vae"])
     else:
-        if "start_vae" in state:  # keep_intrinsic: the source's VAE, its flow's input scaling included
-            load_start_vae(vae, state["start_vae"])
+        if "start_vae" in state:  # keep_*: the source's VAE, its flow's input scaling included
+            load_start_vae(vae, state["start_vae"], chosen.vae.keep_extrinsic)
         else:
             vae.flow.input.fit(bank["spectrum"])
         vae.code_norm.fill_(float(bank["x_c"].pow(2).sum(-1).mean()))
@@ -583,12 +588,16 @@ def load_ae_state(ae: Autoencoder, weights: dict) -> None:
         raise ValueError(f"the AE's weights do not fit its configuration: missing {missing}, unexpected {unexpected}")
 
 
-def load_start_vae(vae: LatentVAE, weights: dict) -> None:
-    """keep_intrinsic's starting VAE. When this VAE's z_E encoder reads a pose code the source's
-    did not, that encoder starts afresh (it is trained here anyway); everything else must fit."""
+def load_start_vae(vae: LatentVAE, weights: dict, keep_extrinsic: bool = False) -> None:
+    """keep_intrinsic's or keep_extrinsic's starting VAE. When this VAE's z_E encoder reads a pose
+    code the source's did not, that encoder starts afresh (only where it is trained here, not under
+    keep_extrinsic); everything else must fit."""
     own = vae.state_dict()
     fresh = {key for key, value in weights.items()
              if key.startswith("extrinsic.") and key in own and own[key].shape != value.shape}
+    if fresh and keep_extrinsic:
+        raise ValueError("keep_extrinsic keeps the starting VAE's z_E encoder, but it reads another input "
+                         f"({sorted(fresh)[0]} differs in shape): start from a VAE trained on this AE's codes")
     missing, unexpected = vae.load_state_dict({k: v for k, v in weights.items() if k not in fresh}, strict=False)
     if unexpected or set(missing) != fresh:
         raise ValueError(f"the starting VAE's weights do not fit: missing {sorted(set(missing) - fresh)}, "

@@ -97,6 +97,11 @@ class VAEConfig:
     # z_E's encoder and the shape decoder train. A live pose code is then added to a model whose
     # shape code, and so the node's identity, stays exactly what it was.
     keep_intrinsic: bool = False
+    # The converse, not in the paper either: z_E's encoder and the rotation branch keep the starting
+    # VAE's weights; z_I's encoder, the flow and the shape decoder train. A shape code taught on
+    # another (larger) set of subjects replaces a model's z_I while its pose code stays exactly what
+    # it was.
+    keep_extrinsic: bool = False
     # Size of the pose code x_p that z_E's encoder reads beside x_c (the AE's pose encoder, pose.py;
     # 0: none, the paper's z_E from x_c alone).
     pose_input: int = 0
@@ -105,6 +110,11 @@ class VAEConfig:
     def paired(self) -> bool:
         """Whether training batches must be paired triples (paired.py)."""
         return self.omega_swap > 0 or self.omega_contrast > 0 or self.omega_pose_contrast > 0 or self.reconstruct_canonical
+
+    @property
+    def keeps_start(self) -> bool:
+        """Whether part of the VAE keeps the starting VAE's weights (`keep_intrinsic`, `keep_extrinsic`)."""
+        return self.keep_intrinsic or self.keep_extrinsic
 
     @property
     def n_intrinsic(self) -> int:
@@ -128,6 +138,8 @@ class VAEConfig:
             raise ValueError(f"covariance_form must be 'covariance', 'correlation' or 'off', got {self.covariance_form!r}")
         if not self.omega_view >= 0:
             raise ValueError(f"omega_view must be >= 0 (0: off), got {self.omega_view}")
+        if self.keep_intrinsic and self.keep_extrinsic:
+            raise ValueError("keep_intrinsic and keep_extrinsic together would train the decoder alone")
         if self.keep_intrinsic and self.regime == "gdvae++":
             raise ValueError("keep_intrinsic holds z_I's encoder fixed, which GDVAE++ decodes only through the flow: "
                              "use it with the 'fo' or 'paired' regime")
@@ -199,9 +211,13 @@ class LatentVAE(nn.Module):
         if config.keep_intrinsic:
             for fixed in (self.rotation, self.intrinsic, self.flow, self.decode_rotation):
                 fixed.requires_grad_(False)
+        if config.keep_extrinsic:
+            for fixed in (self.rotation, self.extrinsic, self.decode_rotation):
+                fixed.requires_grad_(False)
 
     def trained_parameters(self) -> list[nn.Parameter]:
-        """The parameters training updates (all but the fixed branches of `keep_intrinsic`)."""
+        """The parameters training updates (all but the fixed branches of `keep_intrinsic` or
+        `keep_extrinsic`)."""
         return [p for p in self.parameters() if p.requires_grad]
 
     def encode(self, q, x_c, x_p=None):

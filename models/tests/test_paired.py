@@ -184,8 +184,24 @@ def test_a_paired_smoke_run_trains_exports_and_the_node_loads_it(paired_dataset,
             assert same, f"{name} was trained"
         elif name.startswith(("extrinsic.mean", "decode_shape")) and name.endswith("weight"):
             assert not same, f"{name} did not train"
-    assert main(["train", str(paired_dataset), "--out", str(tmp_path / "fresh"), "--recipe", "smoke",
-                 "--regime", "paired", "--set", "vae.keep_intrinsic=true"]) != 0
+    # The converse: a shape code retrained beside a kept pose code (z_E's encoder and the rotation
+    # branch exactly the source's; z_I's encoder, the flow and the decoder train).
+    reshaped = tmp_path / "reshaped"
+    assert main(["train", str(paired_dataset), "--out", str(reshaped), "--recipe", "smoke", "--regime", "paired",
+                 "--init-from", str(run), "--rebuild-bank", "--set", "recipe.vae_batch=24",
+                 "--set", "vae.keep_extrinsic=true"]) == 0
+    after = torch.load(reshaped / "checkpoint.pt", weights_only=False)["vae"]
+    for name, value in after.items():
+        same = torch.equal(value, before[name])
+        if name.split(".")[0] in ("extrinsic", "rotation", "decode_rotation"):
+            assert same, f"{name} was trained"
+        elif name.startswith(("intrinsic.mean", "decode_shape")) and name.endswith("weight"):
+            assert not same, f"{name} did not train"
+    for keep in ("keep_intrinsic", "keep_extrinsic"):
+        assert main(["train", str(paired_dataset), "--out", str(tmp_path / f"fresh-{keep}"), "--recipe", "smoke",
+                     "--regime", "paired", "--set", f"vae.{keep}=true"]) != 0
+    with pytest.raises(ValueError, match="decoder alone"):
+        VAEConfig(regime="fo", keep_intrinsic=True, keep_extrinsic=True).validate()
     quick = tmp_path / "quick.json"
     assert main(["evaluate", str(run), str(paired_dataset), "--retrieval-only", "--out", str(quick)]) == 0
     paired = json.loads(quick.read_text())["paired_retrieval"]
