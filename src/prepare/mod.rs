@@ -235,7 +235,7 @@ impl Preparer {
         // One pass from the sensor's points to the cropped cloud in metres, unless the ground plane
         // must be found first (it levels the cloud before the crop, and lies partly outside it).
         let mut points = match (&s.crop, estimate_ground) {
-            (Some(bounds), false) if s.floor_cut_on() => {
+            (Some(bounds), false) if floor_cut_on(s) => {
                 let mut noise = FloorNoise::default();
                 let mut points = transform_crop_and_measure_floor(
                     &frame.cloud.points,
@@ -284,10 +284,10 @@ impl Preparer {
     }
 
     /// The crop's floor raised above the floor's depth noise (`floor_noise_sigmas`), on a cloud
-    /// cropped with `crop_with_floor_band`.
+    /// cropped with [`crop_with_floor_band`].
     fn cut_floor(&self, points: &mut Vec<[f32; 3]>) {
         let s = &self.settings;
-        if let (true, Some(bounds)) = (s.floor_cut_on(), &s.crop) {
+        if let (true, Some(bounds)) = (floor_cut_on(s), &s.crop) {
             floor_noise_cut(points, bounds[2], s.floor_noise_sigmas);
         }
     }
@@ -328,7 +328,7 @@ impl Preparer {
             }
             (plane, _) => plane,
         };
-        if let Some(bounds) = &s.crop_with_floor_band() {
+        if let Some(bounds) = &crop_with_floor_band(s) {
             crop(points, bounds);
             self.cut_floor(points);
         }
@@ -337,6 +337,23 @@ impl Preparer {
         }
         Ok(())
     }
+}
+
+/// Whether the floor cut applies: on, with a crop whose floor is at or above the ground.
+fn floor_cut_on(s: &PrepareSettings) -> bool {
+    s.floor_noise_sigmas > 0.0 && s.crop.is_some_and(|c| c[2] >= 0.0)
+}
+
+/// The crop to apply before [`floor_noise_cut`]: the configured one, reaching `FLOOR_BAND_M` below
+/// the ground when the floor cut is on, so that the points it measures the noise on pass; `None`
+/// without a crop.
+fn crop_with_floor_band(s: &PrepareSettings) -> Option<[f32; 6]> {
+    s.crop.map(|mut bounds| {
+        if floor_cut_on(s) {
+            bounds[2] = -FLOOR_BAND_M;
+        }
+        bounds
+    })
 }
 
 /// The centre of `points`' box with the lowest and highest `TRIM` of them left out on each axis

@@ -47,25 +47,6 @@ pub struct PrepareSettings {
     pub seed: u64,
 }
 
-impl PrepareSettings {
-    /// The crop to apply before [`floor_noise_cut`](super::floor_noise_cut): the configured one,
-    /// reaching `FLOOR_BAND_M` below the ground when the floor cut is on, so that the points it
-    /// measures the noise on pass; `None` without a crop.
-    pub(super) fn crop_with_floor_band(&self) -> Option<[f32; 6]> {
-        self.crop.map(|mut bounds| {
-            if self.floor_cut_on() {
-                bounds[2] = -super::FLOOR_BAND_M;
-            }
-            bounds
-        })
-    }
-
-    /// Whether the floor cut applies: on, with a crop whose floor is at or above the ground.
-    pub(super) fn floor_cut_on(&self) -> bool {
-        self.floor_noise_sigmas > 0.0 && self.crop.is_some_and(|c| c[2] >= 0.0)
-    }
-}
-
 impl Default for PrepareSettings {
     fn default() -> Self {
         Self {
