@@ -1,5 +1,5 @@
 # The project's entry points. `make test` is what CI runs (.ci/run).
-.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking bench-multi fuzz soak eval-split device-job
+.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking bench-tracking-dense bench-multi fuzz soak eval-split device-job
 
 VENV := .venv
 PYTHON := $(VENV)/bin/python
@@ -36,6 +36,12 @@ bench-tracking: onnxruntime node sim
 	bench/tracking.sh tune
 	bench/tracking.sh holdout
 	bench/tracking.sh final
+
+# The same scenarios at the sim's own camera defaults (every depth pixel; 1.4 GB of recordings a set).
+bench-tracking-dense: onnxruntime node sim
+	bench/tracking.sh dense-tune
+	bench/tracking.sh dense-holdout
+	bench/tracking.sh dense-final
 
 # The multi-object benchmark (docs/tracking.md "Several objects"): its recordings, the candidate
 # detection and the tracking (evaluate with config/objects.toml) on `tune`, `holdout`, `final`, the
