@@ -61,7 +61,7 @@ impl Default for PrepareSettings {
             voxel_grid_m: 0.0,
             outliers: OutlierSettings::default(),
             cluster_m: 0.0,
-            cluster_stretch_from_m: 0.0,
+            cluster_stretch_from_m: 3.5,
             sampling: Sampling::Farthest,
             voxel_m: 0.01,
             min_points: 64,
