@@ -115,11 +115,13 @@ def identity(args) -> None:
                 if args.fit_subjects:
                     mine &= np.isin(fit.subject, np.unique(fit.subject[mine])[:args.fit_subjects])
                 x, subjects = fit_codes[key][mine], fit.subject[mine]
-                centred = x - np.stack([x[subjects == s].mean(0) for s in subjects])
+                names, of_subject = np.unique(subjects, return_inverse=True)
+                subject_means = np.stack([x[of_subject == k].mean(0) for k in range(len(names))])[of_subject]
+                centred = x - subject_means
                 within = centred.T @ centred / len(x) + 1e-6 * np.eye(x.shape[1])
                 values, vectors = np.linalg.eigh(within)
                 whiten = vectors / np.sqrt(np.maximum(values, 1e-9 * values.max()))
-                means = np.stack([x[subjects == s].mean(0) for s in subjects]) - x.mean(0)
+                means = subject_means - x.mean(0)
                 between = (means @ whiten).T @ (means @ whiten) / len(x)
                 _, axes = np.linalg.eigh(between)
                 for k in (4, 8, 16):
