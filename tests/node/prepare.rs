@@ -315,10 +315,27 @@ fn the_floor_cut_rises_with_the_floors_noise_measured_below_the_ground() {
     // In one pass with the transform and the crop, keeping none of the points below the crop.
     let mut points = noisy_floor_and_box(&mut rng, 60_000, 0.02);
     let lift = Vector3::new(0.0, 0.0, 1.0);
-    let sensor: Vec<[f32; 3]> = points
+    let mut sensor: Vec<[f32; 3]> = points
         .iter()
         .map(|p| [p[0] * 1000.0, p[1] * 1000.0, (p[2] - 1.0) * 1000.0])
         .collect();
+    // Points the pass (written without branches on them) must neither keep nor measure: beyond
+    // the floor band, outside the box's x and y, not finite.
+    let deep = -1000.0 * (1.0 + 2.0 * FLOOR_BAND_M);
+    for (i, odd) in [
+        [0.0, 0.0, deep],
+        [1500.0, 0.0, -1005.0],
+        [0.0, -1500.0, -1005.0],
+        [0.0, 0.0, f32::NAN],
+        [f32::NAN, 0.0, -1005.0],
+        [0.0, 0.0, f32::NEG_INFINITY],
+        [0.0, 0.0, f32::INFINITY],
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        sensor.insert(i * 7919, odd);
+    }
     let bounds = [-1.0, -1.0, 0.02, 1.0, 1.0, 2.0];
     let mut noise = FloorNoise::default();
     let mut one_pass =
