@@ -402,11 +402,26 @@ impl std::hash::Hasher for CellHasher {
     }
 }
 
+/// A cluster near the largest joins it only when it has at least this share of its points: a
+/// body's legs or torso, not an arm held apart or what the crop leaves of the floor's noise.
+/// Chosen with `cluster_join_m` (docs/tracking.md "A body in pieces"): 0.1 and 0.15 removed the
+/// same false identity changes, 0.25 only half of them.
+pub const JOIN_MIN_FRACTION: f32 = 0.15;
+
 /// Keeps the largest Euclidean cluster: points joined by chains of neighbours closer than
 /// `radius` (PCL's EuclideanClusterExtraction, one cluster; `stretch`: see [`RangeStretch`]).
 /// What a crop leaves of the floor's depth noise and of stray clutter is sparse and falls apart
-/// from the object. Returns how many points were removed.
-pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32, stretch: Option<RangeStretch>) -> usize {
+/// from the object. With `join_m` > 0, the clusters of at least [`JOIN_MIN_FRACTION`] of its
+/// points that lie above or below it (their boxes overlap in x and y) with a gap of at most
+/// `join_m` are kept with it: a body seen from close by or from above shows gaps wider than
+/// `radius` where a limb hides what joins its legs to its torso, and the largest piece alone is a
+/// different shape (a false identity change). Returns how many points were removed.
+pub fn keep_largest_cluster(
+    points: &mut Vec<[f32; 3]>,
+    radius: f32,
+    stretch: Option<RangeStretch>,
+    join_m: f32,
+) -> usize {
     if points.len() < 2 {
         return 0;
     }
@@ -422,10 +437,27 @@ pub fn keep_largest_cluster(points: &mut Vec<[f32; 3]>, radius: f32, stretch: Op
     }
     let best = (0..count)
         .max_by(|&a, &b| size[a].cmp(&size[b]).then(first[b].cmp(&first[a])))
-        .expect("at least one cluster") as u32;
-    let keep = labels.iter().map(|&l| l == best);
+        .expect("at least one cluster");
+    let mut kept = vec![false; count];
+    kept[best] = true;
+    if join_m > 0.0 && count > 1 {
+        let mut boxes = vec![([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]); count];
+        for (p, &l) in points.iter().zip(&labels) {
+            let (low, high) = &mut boxes[l as usize];
+            for a in 0..3 {
+                low[a] = low[a].min(p[a]);
+                high[a] = high[a].max(p[a]);
+            }
+        }
+        let (best_low, best_high) = boxes[best];
+        let least = (JOIN_MIN_FRACTION * size[best] as f32).ceil() as usize;
+        for (l, (low, high)) in boxes.iter().enumerate() {
+            let gap = |a: usize| (low[a] - best_high[a]).max(best_low[a] - high[a]);
+            kept[l] |= size[l] >= least && gap(0) <= 0.0 && gap(1) <= 0.0 && gap(2) <= join_m;
+        }
+    }
     let before = points.len();
-    let mut flags = keep;
+    let mut flags = labels.iter().map(|&l| kept[l as usize]);
     points.retain(|_| flags.next().unwrap_or(false));
     before - points.len()
 }

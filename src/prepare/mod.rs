@@ -166,7 +166,7 @@ impl Preparer {
         let mut clock = ThreadLap::start();
         let (mut points, input, seed, stretch) = self.reduce(frame, cpu, &mut clock)?;
         if s.cluster_m > 0.0 {
-            keep_largest_cluster(&mut points, s.cluster_m, stretch);
+            keep_largest_cluster(&mut points, s.cluster_m, stretch, s.cluster_join_m);
         }
         cpu[Step::Cluster as usize] += clock.lap();
         let prepared = self.sample(&points, input, seed);

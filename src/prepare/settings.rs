@@ -38,6 +38,12 @@ pub struct PrepareSettings {
     /// stereo camera's depth noise does (see `prepare::RangeStretch`), so that a far object stays
     /// one cluster. 0: the same radius at every range.
     pub cluster_stretch_from_m: f32,
+    /// Keep with the largest cluster those of at least `prepare::JOIN_MIN_FRACTION` of its points
+    /// that lie above or below it (boxes overlapping in x and y) within this distance (metres): a
+    /// body whose limbs hide what joins them, seen from close by or from above, falls into pieces
+    /// (see `prepare::keep_largest_cluster`). 0: the largest cluster alone. Single-object streams
+    /// only (`[objects]` makes every cluster a candidate).
+    pub cluster_join_m: f32,
     pub sampling: Sampling,
     /// Voxel edge (metres) for `sampling = "voxel"`.
     pub voxel_m: f32,
@@ -62,6 +68,7 @@ impl Default for PrepareSettings {
             outliers: OutlierSettings::default(),
             cluster_m: 0.0,
             cluster_stretch_from_m: 3.5,
+            cluster_join_m: 0.1,
             sampling: Sampling::Farthest,
             voxel_m: 0.01,
             min_points: 64,
@@ -140,6 +147,12 @@ impl PrepareSettings {
             return Err(format!(
                 "prepare.cluster_stretch_from_m = {} must be >= 0 (0: off)",
                 p.cluster_stretch_from_m
+            ));
+        }
+        if !(p.cluster_join_m >= 0.0 && p.cluster_join_m.is_finite()) {
+            return Err(format!(
+                "prepare.cluster_join_m = {} must be >= 0 (0: off)",
+                p.cluster_join_m
             ));
         }
         let o = &p.outliers;

@@ -483,10 +483,58 @@ fn the_largest_cluster_is_the_one_a_neighbour_search_finds() {
         }
         let radius = rng.random_range(0.02..0.15);
         let expected = largest_cluster_by_brute_force(&points, radius);
-        let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, radius, None);
+        let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, radius, None, 0.0);
         assert_eq!(points, expected, "case {case}, radius {radius}");
         assert!(removed + points.len() > 0);
     }
+}
+
+/// Points on a 3 cm grid filling the box from `low` to `high`: one cluster at a 6 cm radius.
+fn grid_box(low: [f32; 3], high: [f32; 3]) -> Vec<[f32; 3]> {
+    let steps = |a: usize| ((high[a] - low[a]) / 0.03).round() as usize + 1;
+    let mut points = Vec::new();
+    for i in 0..steps(0) {
+        for j in 0..steps(1) {
+            for k in 0..steps(2) {
+                points.push([
+                    low[0] + 0.03 * i as f32,
+                    low[1] + 0.03 * j as f32,
+                    low[2] + 0.03 * k as f32,
+                ]);
+            }
+        }
+    }
+    points
+}
+
+/// A body whose legs a limb hides from the torso (an 8 cm gap): the largest cluster alone is the
+/// torso; `join_m` 0.1 keeps the legs with it, but neither a handful of stray points just above it
+/// nor an object beside it, nor a piece further than `join_m` below.
+#[test]
+fn a_body_broken_by_a_gap_is_joined_but_not_what_lies_beside_it() {
+    let torso = grid_box([0.0, 0.0, 0.8], [0.3, 0.18, 1.4]);
+    let legs = grid_box([0.03, 0.03, 0.0], [0.27, 0.15, 0.72]);
+    let stray = grid_box([0.1, 0.05, 1.48], [0.16, 0.11, 1.51]);
+    let beside = grid_box([0.6, 0.0, 0.8], [0.9, 0.18, 1.4]);
+    assert!(stray.len() < torso.len() / 10 && beside.len() == torso.len() && legs.len() > torso.len() / 5);
+    let scene: Vec<[f32; 3]> = [&torso, &legs, &stray, &beside]
+        .into_iter()
+        .flatten()
+        .copied()
+        .collect();
+    let kept = |join_m: f32, scene: &[[f32; 3]]| {
+        let mut points = scene.to_vec();
+        keep_largest_cluster(&mut points, 0.06, None, join_m);
+        points
+    };
+    // Of the two equal boxes the first in the cloud is the largest: the torso.
+    assert_eq!(kept(0.0, &scene), torso);
+    let joined: Vec<[f32; 3]> = [&torso, &legs].into_iter().flatten().copied().collect();
+    assert_eq!(kept(0.1, &scene), joined);
+    // Legs 14 cm below: another object.
+    let low_legs: Vec<[f32; 3]> = legs.iter().map(|p| [p[0], p[1], p[2] - 0.06]).collect();
+    let far_scene: Vec<[f32; 3]> = [&torso, &low_legs].into_iter().flatten().copied().collect();
+    assert_eq!(kept(0.1, &far_scene), torso);
 }
 
 #[test]
@@ -497,12 +545,12 @@ fn the_largest_cluster_of_a_cloud_spanning_a_huge_box_is_found_without_overflow(
     let cell = 0.06f32 / 3f32.sqrt();
     let far_corner = (4_194_304.0 - 0.5) * cell;
     let mut points = vec![[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.02, 0.0, 0.0], [far_corner; 3]];
-    let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, 0.06, None);
+    let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, 0.06, None, 0.0);
     assert_eq!(removed, 1);
     assert_eq!(points.len(), 3);
     // Coordinates beyond what a grid of cells can index: the cloud is left as it is.
     let mut far = vec![[0.0, 0.0, 0.0], [3e38, 0.0, 0.0]];
-    assert_eq!(gdvae_node::prepare::keep_largest_cluster(&mut far, 0.06, None), 0);
+    assert_eq!(gdvae_node::prepare::keep_largest_cluster(&mut far, 0.06, None, 0.0), 0);
     assert_eq!(far.len(), 2);
 }
 
@@ -551,7 +599,7 @@ fn every_cluster_that_could_be_an_object_is_a_candidate_largest_first() {
     );
     // The largest cluster is the one keep_largest_cluster keeps.
     let mut largest = points.clone();
-    keep_largest_cluster(&mut largest, 0.1, None);
+    keep_largest_cluster(&mut largest, 0.1, None, 0.0);
     assert_eq!(largest, clusters[0]);
 }
 
@@ -634,7 +682,7 @@ fn a_far_object_broken_by_depth_noise_stays_one_cluster_with_the_radius_grown_by
     );
     let mut kept = far.clone();
     assert_eq!(
-        keep_largest_cluster(&mut kept, 0.06, stretch),
+        keep_largest_cluster(&mut kept, 0.06, stretch, 0.0),
         0,
         "keep_largest_cluster grows it too"
     );
