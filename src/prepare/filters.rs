@@ -403,19 +403,20 @@ impl std::hash::Hasher for CellHasher {
 }
 
 /// A cluster near the largest joins it only when it has at least this share of its points: a
-/// body's legs or torso, not an arm held apart or what the crop leaves of the floor's noise.
-/// Chosen with `cluster_join_m` (docs/tracking.md "A body in pieces"): on the choice sets 0.1 and
-/// 0.15 left 4 of 11 false identity changes, 0.25 left 8.
+/// body's legs or torso, not what the crop leaves of the floor's noise. Chosen with
+/// `cluster_join_m` (docs/tracking.md "A body in pieces"; 0.1 did the same on the choice sets).
 pub const JOIN_MIN_FRACTION: f32 = 0.15;
 
 /// Keeps the largest Euclidean cluster: points joined by chains of neighbours closer than
 /// `radius` (PCL's EuclideanClusterExtraction, one cluster; `stretch`: see [`RangeStretch`]).
 /// What a crop leaves of the floor's depth noise and of stray clutter is sparse and falls apart
 /// from the object. With `join_m` > 0, the clusters of at least [`JOIN_MIN_FRACTION`] of its
-/// points that lie above or below it (their boxes overlap in x and y) with a gap of at most
-/// `join_m` are kept with it: a body seen from close by or from above shows gaps wider than
-/// `radius` where a limb hides what joins its legs to its torso, and the largest piece alone is a
-/// different shape (a false identity change). Returns how many points were removed.
+/// points that lie above or below it (their boxes overlap in x and y, the middle of their height
+/// is outside its own, and the vertical gap is at most `join_m`) are kept with it: a body seen from
+/// close by or from above shows gaps wider than `radius` where a limb hides what joins its legs to
+/// its torso, and the largest piece alone is a different shape (a false identity change). A piece
+/// at the torso's height (an arm held apart) stays out: joined, it cost walking bipeds heading.
+/// Returns how many points were removed.
 pub fn keep_largest_cluster(
     points: &mut Vec<[f32; 3]>,
     radius: f32,
@@ -453,7 +454,10 @@ pub fn keep_largest_cluster(
         let least = (JOIN_MIN_FRACTION * size[best] as f32).ceil() as usize;
         for (l, (low, high)) in boxes.iter().enumerate() {
             let gap = |a: usize| (low[a] - best_high[a]).max(best_low[a] - high[a]);
-            kept[l] |= size[l] >= least && gap(0) <= 0.0 && gap(1) <= 0.0 && gap(2) <= join_m;
+            // Above or below: the middle of its height outside the largest's.
+            let middle = 0.5 * (low[2] + high[2]);
+            let above_or_below = middle < best_low[2] || middle > best_high[2];
+            kept[l] |= size[l] >= least && gap(0) <= 0.0 && gap(1) <= 0.0 && gap(2) <= join_m && above_or_below;
         }
     }
     let before = points.len();

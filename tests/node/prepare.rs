@@ -508,16 +508,21 @@ fn grid_box(low: [f32; 3], high: [f32; 3]) -> Vec<[f32; 3]> {
 }
 
 /// A body whose legs a limb hides from the torso (an 8 cm gap): the largest cluster alone is the
-/// torso; `join_m` 0.1 keeps the legs with it, but neither a handful of stray points just above it
-/// nor an object beside it, nor a piece further than `join_m` below.
+/// torso; `join_m` 0.1 keeps the legs with it, but not a handful of stray points just above it, an
+/// arm held apart within the torso's box (its middle at the torso's height), an object beside it,
+/// or a piece further than `join_m` below.
 #[test]
 fn a_body_broken_by_a_gap_is_joined_but_not_what_lies_beside_it() {
-    let torso = grid_box([0.0, 0.0, 0.8], [0.3, 0.18, 1.4]);
+    // An L-shaped torso, so that the arm can lie within its box and 9 cm from it.
+    let mut torso = grid_box([0.0, 0.0, 0.8], [0.3, 0.09, 1.4]);
+    torso.extend(grid_box([0.0, 0.12, 0.8], [0.09, 0.3, 1.4]));
+    let arm = grid_box([0.18, 0.18, 0.85], [0.3, 0.3, 1.24]);
     let legs = grid_box([0.03, 0.03, 0.0], [0.27, 0.15, 0.72]);
     let stray = grid_box([0.1, 0.05, 1.48], [0.16, 0.11, 1.51]);
-    let beside = grid_box([0.6, 0.0, 0.8], [0.9, 0.18, 1.4]);
-    assert!(stray.len() < torso.len() / 10 && beside.len() == torso.len() && legs.len() > torso.len() / 5);
-    let scene: Vec<[f32; 3]> = [&torso, &legs, &stray, &beside]
+    let beside = grid_box([0.6, 0.0, 0.8], [0.9, 0.09, 1.4]);
+    let least = (0.15 * torso.len() as f32).ceil() as usize;
+    assert!(stray.len() < least && arm.len() >= least && legs.len() >= least && beside.len() < torso.len());
+    let scene: Vec<[f32; 3]> = [&torso, &arm, &legs, &stray, &beside]
         .into_iter()
         .flatten()
         .copied()
@@ -527,7 +532,6 @@ fn a_body_broken_by_a_gap_is_joined_but_not_what_lies_beside_it() {
         keep_largest_cluster(&mut points, 0.06, None, join_m);
         points
     };
-    // Of the two equal boxes the first in the cloud is the largest: the torso.
     assert_eq!(kept(0.0, &scene), torso);
     let joined: Vec<[f32; 3]> = [&torso, &legs].into_iter().flatten().copied().collect();
     assert_eq!(kept(0.1, &scene), joined);
