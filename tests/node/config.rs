@@ -61,6 +61,8 @@ fn bad_values_are_refused_with_the_key_named() {
     let cases = [
         ("[model]\nmax_batch = 0\n", "max_batch"),
         ("[prepare]\ncrop = [1.0, 0.0, 0.0, 0.0, 1.0, 1.0]\n", "crop"),
+        ("[prepare]\ncluster_join_m = -0.1\n", "prepare.cluster_join_m"),
+        ("[prepare]\ncluster_join_m = nan\n", "prepare.cluster_join_m"),
         (
             "[prepare]\nsensor_to_gravity_rotation = [[2.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]\n",
             "sensor_to_gravity_rotation",
