@@ -1,5 +1,5 @@
 # The project's entry points. `make test` is what CI runs (.ci/run).
-.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking bench-tracking-dense bench-multi fuzz soak eval-split device-job
+.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking bench-tracking-dense bench-tracking-idle bench-multi fuzz soak eval-split device-job
 
 VENV := .venv
 PYTHON := $(VENV)/bin/python
@@ -42,6 +42,11 @@ bench-tracking-dense: onnxruntime node sim
 	bench/tracking.sh dense-tune
 	bench/tracking.sh dense-holdout
 	bench/tracking.sh dense-final
+
+# Idle bipeds at the sim's camera defaults and beyond (near, high, far, clutter): false changes and heading.
+bench-tracking-idle: onnxruntime node sim
+	bench/tracking.sh idle-tune
+	bench/tracking.sh idle-holdout
 
 # The multi-object benchmark (docs/tracking.md "Several objects"): its recordings, the candidate
 # detection and the tracking (evaluate with config/objects.toml) on `tune`, `holdout`, `final`, the

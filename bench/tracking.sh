@@ -10,6 +10,11 @@
 # for the camera (every depth pixel, a 4 m ground patch: about 120,000 points a frame, four times
 # the others'), from seeds of their own: what a dense sensor gives, floor noise included.
 #
+# `idle-tune` and `idle-holdout` are a stress set of idle bipeds at the sim's own camera defaults
+# and beyond: three seeds each with the default camera, one 2.2 m up, one 4.5 m away, one 2.2 m
+# away, and six clutter objects (seeds 5001-5043 and 5501-5543; docs/tracking.md "A body in
+# pieces"). No subject changes: every change reported is a false one.
+#
 #   bench/tracking.sh SET [OUT_DIR] [-- evaluate options...]
 #
 # SET is tune, holdout or final. Recordings go to OUT_DIR/SET/ (default /work/data/bench-tracking, or
@@ -18,7 +23,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SET=${1:?usage: bench/tracking.sh [dense-]tune|holdout|final|extra-N [OUT_DIR] [-- evaluate options]}
+SET=${1:?usage: bench/tracking.sh [dense-]tune|holdout|final|extra-N|idle-tune|idle-holdout [OUT_DIR] [-- evaluate options]}
 shift
 OUT=${BENCH_DIR:-/work/data/bench-tracking}
 if [[ $# -gt 0 && $1 != "--" ]]; then OUT=$1; shift; fi
@@ -26,14 +31,17 @@ if [[ $# -gt 0 && $1 != "--" ]]; then OUT=$1; shift; fi
 CAMERA=(--decimation 2 --ground-extent 1.5)
 case $SET in
   dense-*) CAMERA=(--decimation 1 --ground-extent 4); KIND=${SET#dense-}; OFFSET=5000 ;;
+  idle-*) KIND=$SET; OFFSET=0 ;;
   *) KIND=$SET; OFFSET=0 ;;
 esac
 case $KIND in
+  idle-tune) BASE=5000 ;;
+  idle-holdout) BASE=5500 ;;
   tune) BASE=100 ;;
   holdout) BASE=200 ;;
   final) BASE=300 ;;
   extra-[1-9]|extra-[1-9][0-9]) BASE=$((1000 + 100 * ${KIND#extra-})) ;;
-  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N, each also as dense-...)" >&2; exit 2 ;;
+  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N, each also as dense-...; idle-tune, idle-holdout)" >&2; exit 2 ;;
 esac
 BASE=$((BASE + OFFSET))
 
@@ -59,8 +67,34 @@ SCENARIOS=(
   "walk-b|walk|biped|8||2.4"
 )
 
+# The idle sets: name | seed offset | camera options (the sim's defaults otherwise).
+IDLE_GROUPS=(
+  "default|0|"
+  "high|10|--camera-height 2.2"
+  "far|20|--camera-distance 4.5"
+  "near|30|--camera-distance 2.2"
+  "clutter|40|--clutter 6"
+)
+
 mkdir -p "$OUT/$SET"
 RECORDINGS=()
+if [[ $KIND == idle-* ]]; then
+  for group in "${IDLE_GROUPS[@]}"; do
+    IFS='|' read -r name offset options <<<"$group"
+    for n in 1 2 3; do
+      seed=$((BASE + offset + n))
+      file="$OUT/$SET/$name-s$seed.mcap"
+      RECORDINGS+=("$file")
+      [[ -s $file ]] && continue
+      # shellcheck disable=SC2206 # the options are words
+      args=(record --out "$file.partial" --motion idle --families biped --duration 8 $options --seed "$seed")
+      echo "bench/tracking.sh: $SIM ${args[*]}" >&2
+      $SIM "${args[@]}" >&2
+      mv "$file.partial" "$file"
+    done
+  done
+  SCENARIOS=()
+fi
 index=0
 for scenario in "${SCENARIOS[@]}"; do
   IFS='|' read -r name motion families duration switches distance <<<"$scenario"
