@@ -30,6 +30,7 @@ if [[ $# -gt 0 && $1 != "--" ]]; then OUT=$1; shift; fi
 [[ ${1:-} == "--" ]] && shift
 CAMERA=(--decimation 2 --ground-extent 1.5)
 case $SET in
+  dense-idle-*) echo "bench/tracking.sh: the idle sets are at the sim's camera defaults already: use ${SET#dense-}" >&2; exit 2 ;;
   dense-*) CAMERA=(--decimation 1 --ground-extent 4); KIND=${SET#dense-}; OFFSET=5000 ;;
   idle-*) KIND=$SET; OFFSET=0 ;;
   *) KIND=$SET; OFFSET=0 ;;
