@@ -40,10 +40,10 @@ pub struct PrepareSettings {
     pub cluster_stretch_from_m: f32,
     /// Keep with the largest cluster those of at least `prepare::JOIN_MIN_FRACTION` of its points
     /// that lie above or below it (boxes overlapping in x and y, the middle of their height
-    /// outside its own) within this distance (metres): a
-    /// body whose limbs hide what joins them, seen from close by or from above, falls into pieces
-    /// (see `prepare::keep_largest_cluster`). 0: the largest cluster alone. Single-object streams
-    /// only (`[objects]` makes every cluster a candidate).
+    /// outside its own) within this distance (metres): a body whose limbs hide what joins them,
+    /// seen from close by or from above, falls into pieces (see `prepare::keep_largest_cluster`).
+    /// 0: the largest cluster alone. Single-object streams only (`[objects]` makes every cluster a
+    /// candidate).
     pub cluster_join_m: f32,
     pub sampling: Sampling,
     /// Voxel edge (metres) for `sampling = "voxel"`.
