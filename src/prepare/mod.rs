@@ -16,7 +16,7 @@ mod settings;
 pub use filters::{
     crop, euclidean_clusters, fit_ground, floor_noise_cut, keep_largest_cluster, levelling, remove_outliers,
     remove_plane, transform, transform_and_crop, transform_crop_and_measure_floor, voxel_grid, FloorNoise, Plane,
-    RangeStretch, FLOOR_BAND_M,
+    RangeStretch, FLOOR_BAND_M, JOIN_MIN_FRACTION,
 };
 pub use sampling::{
     centre_and_scale, farthest_point_sampling, farthest_point_sampling_plain, random_sampling, subsample,

@@ -6,7 +6,7 @@ use gdvae_node::config::{OutlierMethod, OutlierSettings, PrepareSettings};
 use gdvae_node::prepare::{
     crop, euclidean_clusters, fit_ground, floor_noise_cut, keep_largest_cluster, levelling, remove_outliers,
     remove_plane, transform, transform_and_crop, transform_crop_and_measure_floor, voxel_grid, FloorNoise,
-    PrepareError, Preparer, RangeStretch, FLOOR_BAND_M,
+    PrepareError, Preparer, RangeStretch, FLOOR_BAND_M, JOIN_MIN_FRACTION,
 };
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
@@ -520,7 +520,7 @@ fn a_body_broken_by_a_gap_is_joined_but_not_what_lies_beside_it() {
     let legs = grid_box([0.03, 0.03, 0.0], [0.27, 0.15, 0.72]);
     let stray = grid_box([0.1, 0.05, 1.48], [0.16, 0.11, 1.51]);
     let beside = grid_box([0.6, 0.0, 0.8], [0.9, 0.09, 1.4]);
-    let least = (0.15 * torso.len() as f32).ceil() as usize;
+    let least = (JOIN_MIN_FRACTION * torso.len() as f32).ceil() as usize;
     assert!(stray.len() < least && arm.len() >= least && legs.len() >= least && beside.len() < torso.len());
     let scene: Vec<[f32; 3]> = [&torso, &arm, &legs, &stray, &beside]
         .into_iter()
