@@ -6,7 +6,9 @@ code runs on the CPU.
 Why: the AE's batches used to be drawn one cloud at a time in NumPy, in loader processes; on a lent
 H200 those processes fed the model 5,400 clouds/s and were the limit. Here a batch of views is a
 handful of kernels: area-weighted face choice by `searchsorted` on each mesh's cumulative areas,
-a depth buffer per view by `scatter_reduce`, its 3x3 minimum by `max_pool2d`.
+a depth buffer per view by `scatter_reduce`, its 3x3 minimum by two passes of `minimum`, and the
+seen points drawn by one cumulative sum. The camera's dense samples are kept coordinate-major
+([V, 3, D]), so that its rotation is one batched 3x3 product over contiguous rows.
 
 The sampling is the per-cloud NumPy sampler's it replaced (`data.sample_surface` stays, and the
 tests compare its area weighting with this one's): area-weighted surface points in model units
@@ -139,12 +141,23 @@ def depth_camera_views(camera: DepthCamera, surfaces: torch.Tensor, directions: 
     [V, 3] (unit vectors from the object's centre towards the camera) at a random distance in
     `camera.distance_m`: the nearest point per pixel (unless something well in front of it lies in
     a neighbouring pixel), each moved along its ray by the stereo depth error, `count` of them
-    drawn without repetition (with, when fewer are seen). `centres` [V, 3]: where the camera looks
-    (default: each sample's bounding-box centre). `scale`: model units per metre."""
-    views, dense, _ = surfaces.shape
+    drawn without repetition (with, when fewer are seen). The dense sample's points must be
+    independent draws in random order (as `MeshCache.sample` gives them): the draw takes a run of
+    consecutive seen points. `centres` [V, 3]: where the camera looks (default: each sample's
+    bounding-box centre). `scale`: model units per metre."""
+    return render_views(camera, surfaces.transpose(1, 2), directions, count, scale, generator, centres)
+
+
+def render_views(camera: DepthCamera, surfaces: torch.Tensor, directions: torch.Tensor, count: int,
+                 scale: float, generator: torch.Generator | None,
+                 centres: torch.Tensor | None = None) -> torch.Tensor:
+    """`depth_camera_views` on dense samples laid out coordinate-major, [V, 3, D]: each coordinate
+    of a view's points is one contiguous row, which the camera's rotation (one batched 3x3 product)
+    and every per-point step after it read several times faster than rows of [x, y, z]."""
+    views, _, dense = surfaces.shape
     device = surfaces.device
     if centres is None:
-        centres = 0.5 * (surfaces.amin(1) + surfaces.amax(1))
+        centres = 0.5 * (surfaces.amin(2) + surfaces.amax(2))
     low, high = camera.distance_m
     distance = (low + torch.rand(views, generator=generator, device=device) * (high - low)) * scale
     position = centres + directions * distance[:, None]
@@ -154,43 +167,74 @@ def depth_camera_views(camera: DepthCamera, surfaces: torch.Tensor, directions: 
     right = torch.linalg.cross(forward, torch.where(forward[:, 2:].abs() < 0.99, up_axis, side_axis))
     right = right / right.norm(dim=-1, keepdim=True)
     up = torch.linalg.cross(right, forward)
-    rays = surfaces - position[:, None]
-    image = torch.bmm(rays, torch.stack([right, up, forward], -1))  # [V, D, (right, up, depth)]
-    depth = image[..., 2]
+    axes = torch.stack([right, up, forward], 1)  # rows: the camera's right, up and viewing axes
+    image = torch.baddbmm(-torch.bmm(axes, position[:, :, None]), axes, surfaces)  # [V, (right, up, depth), D]
+    depth = image[:, 2]
     focal = camera.fx / camera.decimation
-    pixel = torch.floor(focal * image[..., :2] / depth[..., None]).long()
-    pixel = pixel - pixel.amin(1, keepdim=True)
-    column, row = pixel[..., 0], pixel[..., 1]
-    width, height = int(column.max()) + 3, int(row.max()) + 3
-    cell = (torch.arange(views, device=device)[:, None] * width + column + 1) * height + row + 1
+    inverse = focal / depth
+    column, row = torch.floor(image[:, 0] * inverse), torch.floor(image[:, 1] * inverse)
+    column -= column.amin(1, keepdim=True)
+    row -= row.amin(1, keepdim=True)
+    width, height = (int(extent) + 3 for extent in torch.stack([column.max(), row.max()]).tolist())
+    # A pixel's cell in one depth buffer [V, width, height] with an empty border (whole numbers in
+    # float32 are exact below 2^24: one view's buffer stays far below that).
+    cell = (((column + 1) * height + row + 1).long()
+            + torch.arange(0, views * width * height, width * height, device=device)[:, None])
     buffer = torch.full((views, width, height), math.inf, device=device)
-    buffer.view(-1).scatter_reduce_(0, cell.reshape(-1), depth.reshape(-1), reduce="amin")
-    # The depth buffer's minimum over each pixel's 3x3 neighbourhood, one axis at a time (its
-    # border stays empty: every point lies at least one pixel inside).
-    across = buffer.clone()
-    across[:, 1:-1] = torch.minimum(torch.minimum(buffer[:, :-2], buffer[:, 1:-1]), buffer[:, 2:])
-    near = across.clone()
-    near[:, :, 1:-1] = torch.minimum(torch.minimum(across[:, :, :-2], across[:, :, 1:-1]), across[:, :, 2:])
-    flat = cell.reshape(-1)
+    flat, depth = cell.view(-1), depth.contiguous()
+    buffer.view(-1).scatter_reduce_(0, flat, depth.view(-1), reduce="amin")
+    near = neighbourhood_minimum(buffer)
     nearest = torch.index_select(buffer.view(-1), 0, flat).view(views, dense)
     around = torch.index_select(near.view(-1), 0, flat).view(views, dense)
-    seen = (depth == nearest) & (depth <= around + 6.0 * depth / focal)
-    # `count` seen points: the seen ones with the largest random keys, or `count` draws among
-    # them when fewer are seen.
-    keys = torch.where(seen, torch.rand(depth.shape, generator=generator, device=device), -1.0)
-    visible = seen.sum(1, keepdim=True)
-    if dense >= count and bool((visible >= count).all()):
-        chosen = keys.topk(count, dim=1, sorted=False).indices
-    else:
-        order = keys.argsort(dim=1, descending=True)  # seen points first, in random order
-        slots = torch.arange(count, device=device)[None].expand(views, count).clamp(max=dense - 1)
-        drawn = (torch.rand(views, count, generator=generator, device=device) * visible).long()
-        chosen = torch.gather(order, 1, torch.where(visible >= count, slots, drawn))
-    rays = torch.gather(rays, 1, chosen[..., None].expand(-1, -1, 3))
+    seen = (depth == nearest) & (depth <= around + depth * (6.0 / focal))
+    chosen = draw_seen(seen, count, generator)
+    points = torch.gather(surfaces, 2, chosen[:, None].expand(-1, 3, -1)).transpose(1, 2)
+    rays = points - position[:, None]
     depth_m = torch.gather(depth, 1, chosen) / scale
     sigma_m = depth_m.pow(2) * camera.disparity_sigma / (camera.fx * camera.baseline_m)
     noise = torch.randn(depth_m.shape, generator=generator, device=device)
     return position[:, None] + rays * ((depth_m + sigma_m * noise) / depth_m)[..., None]
+
+
+def neighbourhood_minimum(buffer: torch.Tensor) -> torch.Tensor:
+    """The minimum over each cell's 3x3 neighbourhood of a depth buffer [V, W, H] whose border is
+    empty (infinite), one axis at a time, written in place into two buffers (fresh tensors and
+    slice assignments cost four times as much on a CPU); the border stays empty."""
+    across = torch.empty_like(buffer)
+    across[:, 0], across[:, -1] = math.inf, math.inf
+    inner = across[:, 1:-1]
+    torch.minimum(buffer[:, :-2], buffer[:, 1:-1], out=inner)
+    torch.minimum(inner, buffer[:, 2:], out=inner)
+    near = torch.empty_like(buffer)
+    near[:, :, 0], near[:, :, -1] = math.inf, math.inf
+    inner = near[:, :, 1:-1]
+    torch.minimum(across[:, :, :-2], across[:, :, 1:-1], out=inner)
+    torch.minimum(inner, across[:, :, 2:], out=inner)
+    return near
+
+
+def draw_seen(seen: torch.Tensor, count: int, generator: torch.Generator | None) -> torch.Tensor:
+    """[V, count] indices of points with `seen` [V, D] true: without repetition, `count` seen points
+    in a row from a random one of them (wrapping round; each seen point is drawn with the same
+    chance, and the draw is uniform among subsets when the points are independent draws in random
+    order) at the cost of one cumulative sum (random keys and a top-k over all D points cost four
+    times as much); with repetition, uniform draws among the seen points, where fewer than `count`
+    are seen."""
+    views, dense = seen.shape
+    device = seen.device
+    running = seen.to(torch.int32).cumsum(1, dtype=torch.int32)  # seen points up to and including each
+    visible = running[:, -1:]
+    if bool((visible >= count).all()):
+        first = (torch.rand(views, 1, generator=generator, device=device) * visible).to(torch.int32)
+        first = torch.minimum(first, visible - 1)  # a draw that rounds up to `visible`
+        rank = running - 1 - first  # among the seen points, counted from the first drawn
+        rank = torch.where(rank < 0, rank + visible, rank)
+        return (seen & (rank < count)).nonzero()[:, 1].view(views, count)
+    keys = torch.where(seen, torch.rand(seen.shape, generator=generator, device=device), -1.0)
+    order = keys.argsort(dim=1, descending=True)  # seen points first, in random order
+    slots = torch.arange(count, device=device)[None].expand(views, count).clamp(max=dense - 1)
+    drawn = (torch.rand(views, count, generator=generator, device=device) * visible).long()
+    return torch.gather(order, 1, torch.where(visible >= count, slots, drawn))
 
 
 class PointSampler:
@@ -209,7 +253,7 @@ class PointSampler:
         self.device, self.scale, self.camera, self.points = self.cache.device, dataset.scale, camera, points
         self.dense_refresh = dense_refresh
         self.generator = torch.Generator(self.cache.device).manual_seed(seed)
-        self.dense: torch.Tensor | None = None  # [meshes, camera.dense, 3], drawn on first use
+        self.dense: torch.Tensor | None = None  # [meshes, 3, camera.dense] (`render_views`), drawn on first use
 
     def __len__(self) -> int:
         return len(self.cache)
@@ -243,15 +287,15 @@ class PointSampler:
         if self.camera is None:
             return self.cache.sample_facing(meshes, self.points, directions, self.generator)
         if self.dense is None:
-            self.dense = torch.cat([self.cache.sample(part, self.camera.dense, self.generator)
+            self.dense = torch.cat([self.cache.sample(part, self.camera.dense, self.generator).transpose(1, 2)
                                     for part in torch.arange(len(self), device=self.device).split(256)])
         renew = meshes[torch.rand(len(meshes), generator=self.generator, device=self.device) < self.dense_refresh]
         if len(renew):
             renew = renew.unique()
-            self.dense[renew] = self.cache.sample(renew, self.camera.dense, self.generator)
+            self.dense[renew] = self.cache.sample(renew, self.camera.dense, self.generator).transpose(1, 2)
         centres = torch.zeros(len(meshes), 3, device=self.device)  # meshes are centred on their box
-        return depth_camera_views(self.camera, torch.index_select(self.dense, 0, meshes), directions, self.points, self.scale,
-                                  self.generator, centres)
+        return render_views(self.camera, torch.index_select(self.dense, 0, meshes), directions, self.points,
+                            self.scale, self.generator, centres)
 
     def clouds(self, meshes) -> torch.Tensor:
         """[len(meshes), points, 3]: a fresh whole-surface cloud of each mesh index in `meshes`."""

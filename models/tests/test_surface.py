@@ -8,7 +8,7 @@ import torch
 import trimesh
 
 from gdvae.data import DepthCamera, Mesh, sample_surface
-from gdvae.surface import MeshCache, PointSampler, depth_camera_views, view_directions
+from gdvae.surface import MeshCache, PointSampler, depth_camera_views, draw_seen, view_directions
 
 
 def ball(centre, radius, subdivisions=4):
@@ -90,6 +90,25 @@ def test_a_view_with_fewer_points_than_asked_repeats_seen_points_only():
     assert seen.shape == (2, 6000, 3)
     assert seen[..., 0].min() > 0.35  # never the hidden side
     assert 1000 < len(torch.unique(seen[0], dim=0)) < 4000
+
+
+def test_seen_points_are_drawn_evenly_and_without_repetition():
+    # Row 0 sees one run of 300 points, row 1 every 7th of 1,000 (143): each seen point must be
+    # drawn as often as any other, whatever lies before it.
+    generator = torch.Generator().manual_seed(0)
+    seen = torch.zeros(2, 1000, dtype=torch.bool)
+    seen[0, :300] = True
+    seen[1, ::7] = True
+    drawn = torch.zeros(2, 1000)
+    rounds = 2000
+    for _ in range(rounds):
+        chosen = draw_seen(seen, 100, generator)
+        assert chosen.shape == (2, 100) and bool(seen.gather(1, chosen).all())
+        assert all(len(row.unique()) == 100 for row in chosen)
+        drawn.scatter_add_(1, chosen, torch.ones(chosen.shape))
+    for row in range(2):
+        share = drawn[row][seen[row]] / rounds  # each seen point's chance: 100 / visible
+        assert (share / (100 / int(seen[row].sum())) - 1).abs().max() < 0.2
 
 
 def test_camera_facing_samples_show_the_viewers_side():
