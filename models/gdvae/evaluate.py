@@ -295,7 +295,6 @@ def rotation_diagnostics(ae, dataset: MeshDataset, indices: list[int], clouds: t
 
 
 @torch.no_grad()
-@torch.no_grad()
 def z_i_variance_calibration(ae, vae, dataset: MeshDataset, indices: list[int], seed: int = 0,
                              full_rotations: bool = False, depth_camera: bool = False) -> dict:
     """What the node's tracker needs of z_I's variances: how far one subject's z_I spreads over its
