@@ -176,8 +176,11 @@ def render_views(camera: DepthCamera, surfaces: torch.Tensor, directions: torch.
     column -= column.amin(1, keepdim=True)
     row -= row.amin(1, keepdim=True)
     width, height = (int(extent) + 3 for extent in torch.stack([column.max(), row.max()]).tolist())
+    if width * height >= 1 << 24:
+        raise ValueError(f"a camera view spans {width - 2} x {height - 2} pixels: some surface points lie "
+                         f"at or behind the camera (distance_m {camera.distance_m} against the sample's size)")
     # A pixel's cell in one depth buffer [V, width, height] with an empty border (whole numbers in
-    # float32 are exact below 2^24: one view's buffer stays far below that).
+    # float32 are exact below 2^24, which the check above keeps one view's buffer below).
     cell = (((column + 1) * height + row + 1).long()
             + torch.arange(0, views * width * height, width * height, device=device)[:, None])
     buffer = torch.full((views, width, height), math.inf, device=device)

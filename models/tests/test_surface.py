@@ -92,6 +92,16 @@ def test_a_view_with_fewer_points_than_asked_repeats_seen_points_only():
     assert 1000 < len(torch.unique(seen[0], dim=0)) < 4000
 
 
+def test_a_view_with_points_at_the_camera_is_refused():
+    # One point 0.1 mm in front of a camera 3 m away on +x, off its axis: its pixel lies about
+    # 200,000 pixels out, and a depth buffer that large is refused, not allocated.
+    dense = torch.zeros(1, 500, 3)
+    dense[0, 0] = torch.tensor([3.0 - 1e-4, 0.1, 0.1])
+    with pytest.raises(ValueError, match="at or behind the camera"):
+        depth_camera_views(DepthCamera(distance_m=(3.0, 3.0)), dense, torch.tensor([[1.0, 0.0, 0.0]]), 100, 1.0,
+                           torch.Generator().manual_seed(0), torch.zeros(1, 3))
+
+
 def test_seen_points_are_drawn_evenly_and_without_repetition():
     # Row 0 sees one run of 300 points, row 1 every 7th of 1,000 (143): each seen point must be
     # drawn as often as any other, whatever lies before it.
