@@ -83,7 +83,7 @@ def bench(dataset: MeshDataset, chosen: Recipe, device: torch.device, seconds: f
     clouds_per_batch = batch * (1 + (copies if partial > 0 else 0))
     maker = {"batches_per_s": steps / wall, "clouds_per_s": steps * clouds_per_batch / wall,
              "clouds_per_batch": clouds_per_batch, "cache_seconds": cache_seconds,
-             "cache_mb": sampler.cache.bytes() / 1e6}
+             "cache_mb": sampler.cache.bytes() / 1e6, "operators": operator_calls(make)}
 
     ae = Autoencoder(chosen.ae).to(device).train()
     optimizer = torch.optim.Adam(ae.parameters(), lr=chosen.ae_learning_rate, fused=fused_adam(device))
@@ -140,7 +140,7 @@ def report(figures: dict) -> str:
            f"{figures['dataset']['load_seconds']:.1f} s"] if "dataset" in figures else []),
         f"  meshes:      {m['cache_mb']:.0f} MB on {figures['device']} in {m['cache_seconds']:.1f} s",
         f"  batch maker: {m['batches_per_s']:.2f} AE batches/s, {m['clouds_per_s']:.0f} clouds/s "
-        f"({m['clouds_per_batch']} clouds a batch, on {figures['device']})",
+        f"({m['clouds_per_batch']} clouds a batch, on {figures['device']}); {m['operators']} operators a batch",
         f"  AE step:     {a['it_per_s']:.2f} it/s at batch {a['batch']} ({a['clouds_per_s']:.0f} clouds/s) on ready batches, "
         f"{a['with_batches_it_per_s']:.2f} it/s making its batches as training does; {a['operators']} operators a step",
         f"  VAE step:    {v['it_per_s']:.2f} it/s at batch {v['batch']} ({v['clouds_per_s']:.0f} codes/s); "
