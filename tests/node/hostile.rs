@@ -190,6 +190,10 @@ fn a_failing_json_lines_sink_does_not_stop_zenoh_and_fails_the_run_at_the_end() 
         sample_recording().display().to_string()
     ))
     .unwrap()];
+    // The node listens before the client connects, as in the other tests: until something listens
+    // on the port, an outgoing connection (the client's attempts, another test's) may be given it
+    // as its own source port, and the node then cannot bind it.
+    let session = gdvae_node::zenoh_session::open_session(&config.zenoh).unwrap();
     let client = client_session(&endpoint);
     let received = Arc::new(std::sync::atomic::AtomicUsize::new(0));
     let counter = received.clone();
@@ -200,7 +204,6 @@ fn a_failing_json_lines_sink_does_not_stop_zenoh_and_fails_the_run_at_the_end() 
         })
         .wait()
         .unwrap();
-    let session = gdvae_node::zenoh_session::open_session(&config.zenoh).unwrap();
     // The subscription reaches the node's session before the replay starts.
     let probe = session.declare_publisher(config.state_key("s")).wait().unwrap();
     assert!(wait_until(Duration::from_secs(10), || {
