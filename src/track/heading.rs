@@ -14,8 +14,10 @@
 //! The motion's direction, far outside its expected spread, is down-weighted (Huber). So a burst of
 //! bad frames bends the track little. The sense (front or back) is a log-odds accumulated from the
 //! votes and clamped: the track turns by 180 degrees only when the evidence against it outweighs
-//! what it has gathered, never because of one frame. Everything is causal: each estimate uses the
-//! frames up to it.
+//! what it has gathered, never because of one frame. The votes count in time, not in frames (a
+//! frame at 10 Hz votes as three at 30 Hz), so a burst of wrong readings is resisted, and the track
+//! comes back after one, in the same time whatever the camera's rate. Everything is causal: each
+//! estimate uses the frames up to it.
 
 use std::collections::VecDeque;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
@@ -33,9 +35,16 @@ const HUBER_SIGMAS: f64 = 2.5;
 const MIN_ENCODER_WEIGHT: f64 = 1e-3;
 /// Rate uncertainty of a new track (rad/s).
 const INITIAL_RATE_STD: f64 = 1.0;
-/// Weight of each frame in the running mean of the encoder's frame-to-frame jitter (about 1 s at
-/// 30 Hz): an encoder that scatters more than `heading_std_deg` says gets a wider noise.
-const JITTER_WEIGHT: f64 = 1.0 / 30.0;
+/// Time constant of the running mean of the encoder's frame-to-frame jitter (s): an encoder that
+/// scatters more than `heading_std_deg` says gets a wider noise.
+const JITTER_TIME_S: f64 = 1.0;
+/// The frame rate at which the votes count as given (`heading_encoder_vote`, `MOTION_VOTE`): at
+/// other rates a frame counts for its share of a second at this rate, so the track resists a burst
+/// of wrong readings, and comes back after one, in the same time whatever the camera's rate. (An
+/// encoder's errors depend on the view, and the view changes with time, not with frames.)
+const VOTE_RATE_HZ: f64 = 30.0;
+/// Most a single frame counts, in frames at `VOTE_RATE_HZ` (after a gap in the stream).
+const MAX_FRAME_WEIGHT: f64 = 3.0;
 
 /// `angle` wrapped to (-pi, pi].
 fn wrap(angle: f64) -> f64 {
@@ -79,13 +88,21 @@ pub struct Heading {
 /// `STEADY_SPEED_SHARE` of the threshold speed, and the two halves' directions differ by less than
 /// `STEADY_MAX_TURN`. The centre of a partial view jumps when the visible part of a body changes;
 /// over a window such a jump looks like a walk, but it lies in one half (or between them, where
-/// neither half moves).
+/// neither half moves). And a walk goes somewhere: over `TRAVEL_WINDOWS` windows the centre must
+/// have travelled `min_travel` (the mean position of the horizon's last quarter from that of its
+/// first). The centre of the visible points of a subject that turns in place, its limbs shifting,
+/// sweeps back and forth by up to half a metre at walking speed for a second at a time; it comes
+/// back, where a walk does not.
 #[derive(Debug, Clone)]
 struct Motion {
     window_s: f64,
     min_speed: f64,
+    min_travel: f64,
     samples: VecDeque<(f64, f64, f64)>,
 }
+
+/// The travel test's horizon, in motion windows.
+const TRAVEL_WINDOWS: f64 = 2.0;
 
 /// Least speed of each half of the motion window, as a share of the threshold speed.
 const STEADY_SPEED_SHARE: f64 = 0.5;
@@ -93,23 +110,78 @@ const STEADY_SPEED_SHARE: f64 = 0.5;
 const STEADY_MAX_TURN: f64 = std::f64::consts::FRAC_PI_4;
 
 impl Motion {
+    /// A new position: the walk's velocity if there is one.
     fn push(&mut self, t: f64, x: f64, y: f64) -> Option<(f64, f64)> {
         self.samples.push_back((t, x, y));
-        while self.samples.front().is_some_and(|(t0, _, _)| t - t0 > self.window_s) {
+        let horizon = self.horizon_s();
+        while self.samples.front().is_some_and(|(t0, _, _)| t - t0 > horizon) {
             self.samples.pop_front();
         }
-        let span = t - self.samples.front()?.0;
-        if self.samples.len() < 4 || span < 0.6 * self.window_s {
+        let velocity = self.window_velocity(t)?;
+        // Before the samples span the travel test's horizon, the window's tests alone decide.
+        (self.steady(t) && self.travelled(t) != Some(false)).then_some(velocity)
+    }
+
+    /// Least-squares velocity over the window, once it holds 4 samples over most of its span.
+    fn window_velocity(&self, t: f64) -> Option<(f64, f64)> {
+        let window = self.samples.iter().filter(|s| t - s.0 <= self.window_s);
+        let span = t - window.clone().next()?.0;
+        if window.clone().count() < 4 || span < 0.6 * self.window_s {
             return None;
         }
-        let velocity = slope(self.samples.iter())?;
-        let middle = t - span / 2.0;
-        let first = slope(self.samples.iter().filter(|s| s.0 <= middle))?;
-        let second = slope(self.samples.iter().filter(|s| s.0 > middle))?;
+        slope(window)
+    }
+
+    /// Whether both halves of the window move at `STEADY_SPEED_SHARE` of the threshold speed or
+    /// more, in directions within `STEADY_MAX_TURN`.
+    fn steady(&self, t: f64) -> bool {
+        let window = self.samples.iter().filter(|s| t - s.0 <= self.window_s);
+        let Some(&(start, _, _)) = window.clone().next() else {
+            return false;
+        };
+        let middle = t - (t - start) / 2.0;
+        let (Some(first), Some(second)) = (
+            slope(window.clone().filter(|s| s.0 <= middle)),
+            slope(window.filter(|s| s.0 > middle)),
+        ) else {
+            return false;
+        };
         let least = STEADY_SPEED_SHARE * self.min_speed;
         let turn = wrap(first.1.atan2(first.0) - second.1.atan2(second.0)).abs();
-        (first.0.hypot(first.1) >= least && second.0.hypot(second.1) >= least && turn < STEADY_MAX_TURN)
-            .then_some(velocity)
+        first.0.hypot(first.1) >= least && second.0.hypot(second.1) >= least && turn < STEADY_MAX_TURN
+    }
+
+    /// How long the samples are kept (s).
+    fn horizon_s(&self) -> f64 {
+        if self.min_travel > 0.0 {
+            TRAVEL_WINDOWS * self.window_s
+        } else {
+            self.window_s
+        }
+    }
+
+    /// Whether the centre travelled `min_travel` over the horizon: None before the samples span
+    /// most of it, always Some(true) when that is 0.
+    fn travelled(&self, t: f64) -> Option<bool> {
+        if self.min_travel <= 0.0 {
+            return Some(true);
+        }
+        let horizon = self.horizon_s();
+        let &(start, _, _) = self.samples.front()?;
+        if t - start < 0.8 * horizon {
+            return None;
+        }
+        let mean = |keep: &dyn Fn(f64) -> bool| {
+            let (n, x, y) = self
+                .samples
+                .iter()
+                .filter(|s| keep(s.0))
+                .fold((0.0, 0.0, 0.0), |(n, x, y), s| (n + 1.0, x + s.1, y + s.2));
+            (x / n, y / n)
+        };
+        let (x0, y0) = mean(&|time| time <= start + horizon / 4.0);
+        let (x1, y1) = mean(&|time| time >= t - horizon / 4.0);
+        Some((x1 - x0).hypot(y1 - y0) >= self.min_travel)
     }
 }
 
@@ -171,6 +243,7 @@ impl HeadingFilter {
             motion: Motion {
                 window_s: settings.motion_window_s as f64,
                 min_speed: settings.motion_min_speed_mps as f64,
+                min_travel: settings.motion_min_travel_m as f64,
                 samples: VecDeque::new(),
             },
             state: None,
@@ -190,9 +263,13 @@ impl HeadingFilter {
     /// since the previous frame (s).
     pub fn update(&mut self, encoder_yaw: f64, centre: [f64; 2], dt: f64) -> Heading {
         self.time += dt;
+        // What this frame counts for, in frames at the votes' rate (a stream without usable stamps
+        // gets the nominal rate's dt, so this is 1 at 30 Hz).
+        let frame_weight = (dt * VOTE_RATE_HZ).clamp(0.0, MAX_FRAME_WEIGHT);
         if let Some(previous) = self.previous_encoder_yaw {
             let step = wrap_axial(encoder_yaw - previous);
-            self.jitter_power += JITTER_WEIGHT * (step * step - self.jitter_power);
+            let weight = (dt / JITTER_TIME_S).clamp(0.0, 1.0);
+            self.jitter_power += weight * (step * step - self.jitter_power);
         }
         self.previous_encoder_yaw = Some(encoder_yaw);
         let velocity = self.motion.push(self.time, centre[0], centre[1]);
@@ -233,14 +310,11 @@ impl HeadingFilter {
         // Sense votes, then turn round if the evidence says the track faces backwards.
         // An encoder that scatters widely is a weaker witness of front and back too.
         let encoder_agrees = wrap(encoder_yaw - x[0]).abs() < FRAC_PI_2;
-        let vote = self.encoder_vote * (self.measurement_var / self.encoder_variance());
+        let vote = frame_weight * self.encoder_vote * (self.measurement_var / self.encoder_variance());
         sense += if encoder_agrees { vote } else { -vote };
         if let Some((m, _)) = motion {
-            sense += if wrap(m - x[0]).abs() < FRAC_PI_2 {
-                MOTION_VOTE
-            } else {
-                -MOTION_VOTE
-            };
+            let vote = frame_weight * MOTION_VOTE;
+            sense += if wrap(m - x[0]).abs() < FRAC_PI_2 { vote } else { -vote };
         }
         let mut turned_round = false;
         if sense < 0.0 {

@@ -70,6 +70,9 @@ pub struct TrackSettings {
     pub motion_window_s: f32,
     /// Below this speed (m/s) the direction of motion is not used.
     pub motion_min_speed_mps: f32,
+    /// A walk goes somewhere: the motion is used only once the centre travelled this far (m) over
+    /// twice `motion_window_s` (0: no such test).
+    pub motion_min_travel_m: f32,
     /// Standard deviation of the motion direction as a measurement (degrees), at twice the
     /// minimum speed and above; it widens towards the minimum speed.
     pub motion_heading_std_deg: f32,
@@ -108,6 +111,7 @@ impl Default for TrackSettings {
             heading_from_motion: true,
             motion_window_s: 1.0,
             motion_min_speed_mps: 0.3,
+            motion_min_travel_m: 0.0,
             motion_heading_std_deg: 20.0,
             heading_flip_evidence: 6.0,
             heading_encoder_vote: 0.5,
@@ -149,6 +153,12 @@ impl TrackSettings {
             if !(value >= 0.0 && value < below) {
                 return Err(format!("track.{name} = {value} must be at least 0 and below {below}"));
             }
+        }
+        if !(self.motion_min_travel_m >= 0.0 && self.motion_min_travel_m.is_finite()) {
+            return Err(format!(
+                "track.motion_min_travel_m = {} must be at least 0 and finite",
+                self.motion_min_travel_m
+            ));
         }
         if self.switch_frames == 0 {
             return Err("track.switch_frames must be at least 1".into());

@@ -62,6 +62,7 @@ fn bad_values_are_refused_with_the_key_named() {
         ("[model]\nmax_batch = 0\n", "max_batch"),
         ("[prepare]\ncrop = [1.0, 0.0, 0.0, 0.0, 1.0, 1.0]\n", "crop"),
         ("[prepare]\ncluster_join_m = -0.1\n", "prepare.cluster_join_m"),
+        ("[track]\nmotion_min_travel_m = -0.5\n", "track.motion_min_travel_m"),
         ("[prepare]\ncluster_join_m = nan\n", "prepare.cluster_join_m"),
         (
             "[prepare]\nsensor_to_gravity_rotation = [[2.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]\n",

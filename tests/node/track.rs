@@ -621,3 +621,111 @@ fn an_encoder_that_scatters_over_all_angles_gives_way_to_the_motion() {
     let (median, p90) = (errors[errors.len() / 2], errors[errors.len() * 9 / 10]);
     assert!(median < 10.0 && p90 < 25.0, "median {median:.1}, p90 {p90:.1} deg");
 }
+
+/// Seconds until the track turns round when a still subject's encoder, right for 3 s, reads the
+/// back for the front from then on (noise-free readings), at `rate_hz` frames a second.
+fn seconds_to_turn_round(rate_hz: f64) -> f64 {
+    let settings = TrackSettings {
+        heading_from_motion: false,
+        ..TrackSettings::default()
+    };
+    let mut filter = HeadingFilter::new(&settings);
+    let dt = 1.0 / rate_hz;
+    let truth = 0.7;
+    for step in 0..(10.0 * rate_hz) as usize {
+        let time = step as f64 * dt;
+        let flipped = time >= 3.0;
+        let measured = truth + if flipped { std::f64::consts::PI } else { 0.0 };
+        if filter.update(measured, [0.0, 0.0], dt).turned_round {
+            return time - 3.0;
+        }
+    }
+    f64::INFINITY
+}
+
+#[test]
+fn the_front_and_back_votes_count_in_seconds_not_frames() {
+    // An encoder's errors follow the view, which changes with time: a camera at 10 Hz must not
+    // make the track three times slower to come round (or three times more stubborn) than one
+    // at 30 Hz.
+    let (at_30, at_15, at_10) = (
+        seconds_to_turn_round(30.0),
+        seconds_to_turn_round(15.0),
+        seconds_to_turn_round(10.0),
+    );
+    assert!(at_30 > 0.2 && at_30 < 1.0, "turned round after {at_30:.2} s at 30 Hz");
+    for (rate, seconds) in [(15, at_15), (10, at_10)] {
+        assert!(
+            (seconds - at_30).abs() <= 0.2,
+            "{seconds:.2} s at {rate} Hz against {at_30:.2} s at 30 Hz"
+        );
+    }
+}
+
+/// A subject standing at the origin facing +x, the encoder right with 10-degree noise, whose
+/// centre stands still for 3 s and then sweeps back and forth along x (0.25 m either way, a
+/// 2.5-s period: up to 0.6 m/s, the visible points of a body turning in place with its limbs
+/// shifting). Returns the frames with a motion measurement after the first 3 s and whether the
+/// track ever turned round.
+fn sweeping_centre(settings: &TrackSettings) -> (usize, bool) {
+    let mut filter = HeadingFilter::new(settings);
+    let mut rng = ChaCha8Rng::seed_from_u64(18);
+    let noise = Normal::new(0.0, 10f64.to_radians()).unwrap();
+    let (mut with_motion, mut turned) = (0, false);
+    for step in 0..600 {
+        let time = step as f64 * DT;
+        let x = if time < 3.0 {
+            0.0
+        } else {
+            0.25 * (std::f64::consts::TAU * (time - 3.0) / 2.5).sin()
+        };
+        let heading = filter.update(noise.sample(&mut rng), [x, 0.0], DT);
+        with_motion += usize::from(time >= 3.0 && heading.motion_yaw.is_some());
+        turned |= heading.turned_round;
+    }
+    (with_motion, turned)
+}
+
+#[test]
+fn with_a_least_travel_a_centre_that_sweeps_back_and_forth_is_not_a_walk() {
+    let travel = TrackSettings {
+        motion_min_travel_m: 0.5,
+        ..TrackSettings::default()
+    };
+    let (with_motion, turned) = sweeping_centre(&travel);
+    assert_eq!(with_motion, 0, "the sweep was taken for a walk on {with_motion} frames");
+    assert!(!turned, "the track turned round");
+    // The premise: without the travel test the sweep passes the window's tests.
+    let (with_motion, _) = sweeping_centre(&TrackSettings::default());
+    assert!(
+        with_motion > 30,
+        "only {with_motion} frames of motion without the travel test"
+    );
+}
+
+#[test]
+fn with_a_least_travel_a_walk_still_sets_the_heading() {
+    // Walking along +x at 0.4 m/s with the encoder reading it backwards: the travel test lets the
+    // motion in once the centre has gone half a metre, and the track comes round.
+    let settings = TrackSettings {
+        motion_min_travel_m: 0.5,
+        ..TrackSettings::default()
+    };
+    let mut filter = HeadingFilter::new(&settings);
+    let mut rng = ChaCha8Rng::seed_from_u64(19);
+    let noise = Normal::new(0.0, 10f64.to_radians()).unwrap();
+    let mut late_errors = Vec::new();
+    for step in 0..300 {
+        let time = step as f64 * DT;
+        let measured = std::f64::consts::PI + noise.sample(&mut rng);
+        let heading = filter.update(measured, [0.4 * time, 0.0], DT);
+        if time >= 3.5 {
+            late_errors.push(wrap_deg(heading.yaw).abs());
+        }
+    }
+    let worst = late_errors.iter().cloned().fold(0.0, f64::max);
+    assert!(
+        worst < 20.0,
+        "after 3.5 s the track faces the walk (worst {worst:.1} deg)"
+    );
+}
