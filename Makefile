@@ -43,10 +43,13 @@ bench-tracking-dense: onnxruntime node sim
 	bench/tracking.sh dense-holdout
 	bench/tracking.sh dense-final
 
-# Idle bipeds at the sim's camera defaults and beyond (near, high, far, clutter): false changes and heading.
+# Idle bipeds at the sim's camera defaults and beyond (near, high, far, clutter): false changes and heading;
+# and standing for 30 s, or at 15 and 10 Hz (docs/tracking.md "Standing subjects").
 bench-tracking-idle: onnxruntime node sim
 	bench/tracking.sh idle-tune
 	bench/tracking.sh idle-holdout
+	bench/tracking.sh still-tune
+	bench/tracking.sh still-holdout
 
 # The multi-object benchmark (docs/tracking.md "Several objects"): its recordings, the candidate
 # detection and the tracking (evaluate with config/objects.toml) on `tune`, `holdout`, `final`, the

@@ -15,6 +15,10 @@
 # away, and six clutter objects (seeds 5001-5043 and 5501-5543; docs/tracking.md "A body in
 # pieces"). No subject changes: every change reported is a false one.
 #
+# `still-tune` and `still-holdout` are idle bipeds at the sim's camera defaults for longer and at
+# lower frame rates: three seeds each of 30 s at 30 Hz, 16 s at 15 Hz and 20 s at 10 Hz (seeds
+# 7001-7023 and 7101-7123; docs/tracking.md "Standing subjects").
+#
 #   bench/tracking.sh SET [OUT_DIR] [-- evaluate options...]
 #
 # SET is tune, holdout or final. Recordings go to OUT_DIR/SET/ (default /work/data/bench-tracking, or
@@ -23,26 +27,28 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SET=${1:?usage: bench/tracking.sh [dense-]tune|holdout|final|extra-N|idle-tune|idle-holdout [OUT_DIR] [-- evaluate options]}
+SET=${1:?usage: bench/tracking.sh [dense-]tune|holdout|final|extra-N|idle-tune|idle-holdout|still-tune|still-holdout [OUT_DIR] [-- evaluate options]}
 shift
 OUT=${BENCH_DIR:-/work/data/bench-tracking}
 if [[ $# -gt 0 && $1 != "--" ]]; then OUT=$1; shift; fi
 [[ ${1:-} == "--" ]] && shift
 CAMERA=(--decimation 2 --ground-extent 1.5)
 case $SET in
-  dense-idle-*) echo "bench/tracking.sh: the idle sets are at the sim's camera defaults already: use ${SET#dense-}" >&2; exit 2 ;;
+  dense-idle-*|dense-still-*) echo "bench/tracking.sh: the idle sets are at the sim's camera defaults already: use ${SET#dense-}" >&2; exit 2 ;;
   dense-*) CAMERA=(--decimation 1 --ground-extent 4); KIND=${SET#dense-}; OFFSET=5000 ;;
-  idle-*) KIND=$SET; OFFSET=0 ;;
+  idle-*|still-*) KIND=$SET; OFFSET=0 ;;
   *) KIND=$SET; OFFSET=0 ;;
 esac
 case $KIND in
   idle-tune) BASE=5000 ;;
   idle-holdout) BASE=5500 ;;
+  still-tune) BASE=7000 ;;
+  still-holdout) BASE=7100 ;;
   tune) BASE=100 ;;
   holdout) BASE=200 ;;
   final) BASE=300 ;;
   extra-[1-9]|extra-[1-9][0-9]) BASE=$((1000 + 100 * ${KIND#extra-})) ;;
-  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N, each also as dense-...; idle-tune, idle-holdout)" >&2; exit 2 ;;
+  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N, each also as dense-...; idle-tune, idle-holdout, still-tune, still-holdout)" >&2; exit 2 ;;
 esac
 BASE=$((BASE + OFFSET))
 
@@ -89,6 +95,28 @@ if [[ $KIND == idle-* ]]; then
       [[ -s $file ]] && continue
       # shellcheck disable=SC2206 # the options are words
       args=(record --out "$file.partial" --motion idle --families biped --duration 8 $options --seed "$seed")
+      echo "bench/tracking.sh: $SIM ${args[*]}" >&2
+      $SIM "${args[@]}" >&2
+      mv "$file.partial" "$file"
+    done
+  done
+  SCENARIOS=()
+fi
+# The still sets: name | seed offset | frame rate | duration s.
+STILL_GROUPS=(
+  "long|0|30|30"
+  "fps15|10|15|16"
+  "fps10|20|10|20"
+)
+if [[ $KIND == still-* ]]; then
+  for group in "${STILL_GROUPS[@]}"; do
+    IFS='|' read -r name offset fps duration <<<"$group"
+    for n in 1 2 3; do
+      seed=$((BASE + offset + n))
+      file="$OUT/$SET/$name-s$seed.mcap"
+      RECORDINGS+=("$file")
+      [[ -s $file ]] && continue
+      args=(record --out "$file.partial" --motion idle --families biped --duration "$duration" --fps "$fps" --seed "$seed")
       echo "bench/tracking.sh: $SIM ${args[*]}" >&2
       $SIM "${args[@]}" >&2
       mv "$file.partial" "$file"
