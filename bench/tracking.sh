@@ -85,19 +85,24 @@ IDLE_GROUPS=(
 
 mkdir -p "$OUT/$SET"
 RECORDINGS=()
+# record NAME SEED SIM-OPTIONS...: OUT/SET/NAME-sSEED.mcap joins the set, made once (the sim is
+# deterministic per seed; a half-written file never passes for a recording).
+record() {
+  local file="$OUT/$SET/$1-s$2.mcap" seed=$2
+  shift 2
+  RECORDINGS+=("$file")
+  [[ -s $file ]] && return
+  local args=(record --out "$file.partial" "$@" --seed "$seed")
+  echo "bench/tracking.sh: $SIM ${args[*]}" >&2
+  $SIM "${args[@]}" >&2
+  mv "$file.partial" "$file"
+}
 if [[ $KIND == idle-* ]]; then
   for group in "${IDLE_GROUPS[@]}"; do
     IFS='|' read -r name offset options <<<"$group"
     for n in 1 2 3; do
-      seed=$((BASE + offset + n))
-      file="$OUT/$SET/$name-s$seed.mcap"
-      RECORDINGS+=("$file")
-      [[ -s $file ]] && continue
-      # shellcheck disable=SC2206 # the options are words
-      args=(record --out "$file.partial" --motion idle --families biped --duration 8 $options --seed "$seed")
-      echo "bench/tracking.sh: $SIM ${args[*]}" >&2
-      $SIM "${args[@]}" >&2
-      mv "$file.partial" "$file"
+      # shellcheck disable=SC2086 # the options are words
+      record "$name" $((BASE + offset + n)) --motion idle --families biped --duration 8 $options
     done
   done
   SCENARIOS=()
@@ -112,14 +117,7 @@ if [[ $KIND == still-* ]]; then
   for group in "${STILL_GROUPS[@]}"; do
     IFS='|' read -r name offset fps duration <<<"$group"
     for n in 1 2 3; do
-      seed=$((BASE + offset + n))
-      file="$OUT/$SET/$name-s$seed.mcap"
-      RECORDINGS+=("$file")
-      [[ -s $file ]] && continue
-      args=(record --out "$file.partial" --motion idle --families biped --duration "$duration" --fps "$fps" --seed "$seed")
-      echo "bench/tracking.sh: $SIM ${args[*]}" >&2
-      $SIM "${args[@]}" >&2
-      mv "$file.partial" "$file"
+      record "$name" $((BASE + offset + n)) --motion idle --families biped --duration "$duration" --fps "$fps"
     done
   done
   SCENARIOS=()
@@ -129,15 +127,10 @@ for scenario in "${SCENARIOS[@]}"; do
   IFS='|' read -r name motion families duration switches distance <<<"$scenario"
   seed=$((BASE + index))
   index=$((index + 1))
-  file="$OUT/$SET/$name-s$seed.mcap"
-  RECORDINGS+=("$file")
-  [[ -s $file ]] && continue
-  args=(record --out "$file.partial" --motion "$motion" --families "$families" --duration "$duration"
-        --camera-distance "$distance" "${CAMERA[@]}" --seed "$seed")
-  [[ -n $switches ]] && args+=(--switch-at "$switches")
-  echo "bench/tracking.sh: $SIM ${args[*]}" >&2
-  $SIM "${args[@]}" >&2
-  mv "$file.partial" "$file"
+  switch_at=()
+  [[ -n $switches ]] && switch_at=(--switch-at "$switches")
+  record "$name" "$seed" --motion "$motion" --families "$families" --duration "$duration" \
+    --camera-distance "$distance" "${CAMERA[@]}" "${switch_at[@]}"
 done
 
 $NODE evaluate "${RECORDINGS[@]}" --config config/replay.toml \
