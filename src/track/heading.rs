@@ -117,38 +117,20 @@ impl Motion {
         while self.samples.front().is_some_and(|(t0, _, _)| t - t0 > horizon) {
             self.samples.pop_front();
         }
-        let velocity = self.window_velocity(t)?;
-        // Before the samples span the travel test's horizon, the window's tests alone decide.
-        (self.steady(t) && self.travelled(t) != Some(false)).then_some(velocity)
-    }
-
-    /// Least-squares velocity over the window, once it holds 4 samples over most of its span.
-    fn window_velocity(&self, t: f64) -> Option<(f64, f64)> {
         let window = self.samples.iter().filter(|s| t - s.0 <= self.window_s);
         let span = t - window.clone().next()?.0;
         if window.clone().count() < 4 || span < 0.6 * self.window_s {
             return None;
         }
-        slope(window)
-    }
-
-    /// Whether both halves of the window move at `STEADY_SPEED_SHARE` of the threshold speed or
-    /// more, in directions within `STEADY_MAX_TURN`.
-    fn steady(&self, t: f64) -> bool {
-        let window = self.samples.iter().filter(|s| t - s.0 <= self.window_s);
-        let Some(&(start, _, _)) = window.clone().next() else {
-            return false;
-        };
-        let middle = t - (t - start) / 2.0;
-        let (Some(first), Some(second)) = (
-            slope(window.clone().filter(|s| s.0 <= middle)),
-            slope(window.filter(|s| s.0 > middle)),
-        ) else {
-            return false;
-        };
+        let velocity = slope(window.clone())?;
+        let middle = t - span / 2.0;
+        let first = slope(window.clone().filter(|s| s.0 <= middle))?;
+        let second = slope(window.filter(|s| s.0 > middle))?;
         let least = STEADY_SPEED_SHARE * self.min_speed;
         let turn = wrap(first.1.atan2(first.0) - second.1.atan2(second.0)).abs();
-        first.0.hypot(first.1) >= least && second.0.hypot(second.1) >= least && turn < STEADY_MAX_TURN
+        let steady = first.0.hypot(first.1) >= least && second.0.hypot(second.1) >= least && turn < STEADY_MAX_TURN;
+        // Before the samples span the travel test's horizon, the window's tests alone decide.
+        (steady && self.travelled(t) != Some(false)).then_some(velocity)
     }
 
     /// How long the samples are kept (s).
