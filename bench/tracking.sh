@@ -19,6 +19,10 @@
 # lower frame rates: three seeds each of 30 s at 30 Hz, 16 s at 15 Hz and 20 s at 10 Hz (seeds
 # 7001-7023 and 7101-7123; docs/tracking.md "Standing subjects").
 #
+# `idle-extra-N` and `still-extra-N` are more held-apart seeds of those two kinds (N = 1: seeds
+# 20101-20143 and 30101-30123; each N after, 100 more): an idle set holds few recordings, and one
+# recording whose track goes astray moves its p90 by many degrees.
+#
 #   bench/tracking.sh SET [OUT_DIR] [-- evaluate options...]
 #
 # SET is tune, holdout or final. Recordings go to OUT_DIR/SET/ (default /work/data/bench-tracking, or
@@ -27,7 +31,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SET=${1:?usage: bench/tracking.sh [dense-]tune|holdout|final|extra-N|idle-tune|idle-holdout|still-tune|still-holdout [OUT_DIR] [-- evaluate options]}
+SET=${1:?usage: bench/tracking.sh [dense-]tune|holdout|final|extra-N|idle-tune|idle-holdout|idle-extra-N|still-tune|still-holdout|still-extra-N [OUT_DIR] [-- evaluate options]}
 shift
 OUT=${BENCH_DIR:-/work/data/bench-tracking}
 if [[ $# -gt 0 && $1 != "--" ]]; then OUT=$1; shift; fi
@@ -44,11 +48,13 @@ case $KIND in
   idle-holdout) BASE=5500 ;;
   still-tune) BASE=7000 ;;
   still-holdout) BASE=7100 ;;
+  idle-extra-[1-9]|idle-extra-[1-9][0-9]) BASE=$((20000 + 100 * ${KIND#idle-extra-})) ;;
+  still-extra-[1-9]|still-extra-[1-9][0-9]) BASE=$((30000 + 100 * ${KIND#still-extra-})) ;;
   tune) BASE=100 ;;
   holdout) BASE=200 ;;
   final) BASE=300 ;;
   extra-[1-9]|extra-[1-9][0-9]) BASE=$((1000 + 100 * ${KIND#extra-})) ;;
-  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N, each also as dense-...; idle-tune, idle-holdout, still-tune, still-holdout)" >&2; exit 2 ;;
+  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N, each also as dense-...; idle-tune, idle-holdout, idle-extra-N, still-tune, still-holdout, still-extra-N)" >&2; exit 2 ;;
 esac
 BASE=$((BASE + OFFSET))
 

@@ -13,6 +13,11 @@ pub struct Encoding {
     pub z_e_logvar: Vec<f32>,
     pub z_i_mean: Vec<f32>,
     pub z_i_logvar: Vec<f32>,
+    /// How far the test-time yaw copies' headings scatter about the fused one (radians, RMS over
+    /// every copy, outvoted ones included; `crate::yaw_copies`): None with a single copy. A frame
+    /// whose copies disagree is one the encoder reads poorly (the heading tracker weighs it less).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub yaw_spread: Option<f32>,
 }
 
 impl Encoding {

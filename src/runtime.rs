@@ -251,6 +251,7 @@ impl Encoder {
                     z_e_logvar: take(5, row),
                     z_i_mean: take(6, row),
                     z_i_logvar: take(7, row),
+                    yaw_spread: None,
                 }
             })
             .collect())

@@ -49,6 +49,10 @@ pub struct Raw {
     pub yaw: f32,
     /// 1 / (1 + mean variance of z_R): the rotation's confidence, in (0, 1].
     pub q_confidence: f32,
+    /// How far the yaw copies' headings scatter about `yaw` (radians, RMS; absent with one copy):
+    /// a frame whose copies disagree is one whose heading the encoder reads poorly.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub yaw_spread: Option<f32>,
     pub z_e: Vec<f32>,
     pub z_e_var: Vec<f32>,
     pub z_i: Vec<f32>,

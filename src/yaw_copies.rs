@@ -13,7 +13,7 @@
 //! measurements). `z_R`, which describes the rotation as seen, is the unturned copy's.
 
 use crate::encoding::Encoding;
-use crate::track::pose::{normalized as unit, turn_rotation};
+use crate::track::pose::{normalized as unit, turn_rotation, yaw_of};
 
 /// Copies further than this from the medoid's rotation are outvoted.
 pub const INLIER_DEG: f32 = 45.0;
@@ -38,6 +38,19 @@ pub fn turned(cloud: &[[f32; 3]], angle: f32) -> Vec<[f32; 3]> {
 fn angle_between(a: &[f32; 4], b: &[f32; 4]) -> f32 {
     let dot: f32 = a.iter().zip(b).map(|(x, y)| x * y).sum();
     2.0 * dot.abs().min(1.0).acos()
+}
+
+/// The RMS of the copies' yaws (turned back) about the fused rotation's yaw (radians; each
+/// difference wrapped to (-pi, pi], so a copy that took the back for the front counts as half a
+/// turn).
+fn yaw_spread(votes: &[[f32; 4]], fused: &[f32; 4]) -> f32 {
+    use std::f32::consts::{PI, TAU};
+    let centre = yaw_of(fused);
+    let sum: f32 = votes
+        .iter()
+        .map(|v| ((yaw_of(v) - centre + PI).rem_euclid(TAU) - PI).powi(2))
+        .sum();
+    (sum / votes.len() as f32).sqrt()
 }
 
 /// One frame's encoding from its copies' encodings; `copies[k]` saw the frame turned by `angles[k]`
@@ -99,6 +112,7 @@ pub fn fuse(copies: &[Encoding], angles: &[f32]) -> (Encoding, usize) {
         z_e_logvar: mean_variance(|e| &e.z_e_logvar),
         z_i_mean: mean(|e| &e.z_i_mean),
         z_i_logvar: mean_variance(|e| &e.z_i_logvar),
+        yaw_spread: Some(yaw_spread(&votes, &unit(q))),
     };
     (fused, inliers.len())
 }
@@ -118,6 +132,7 @@ mod tests {
             z_e_logvar: vec![0.0],
             z_i_mean: vec![z_i],
             z_i_logvar: vec![(0.5f32).ln()],
+            yaw_spread: None,
         }
     }
 
@@ -155,6 +170,23 @@ mod tests {
         // The outvoted copy's code is left out; variances are averaged, not shrunk.
         assert!((fused.z_i_mean[0] - 1.0).abs() < 1e-6);
         assert!((fused.z_i_logvar[0] - (0.5f32).ln()).abs() < 1e-6);
+        // The scatter counts the outvoted copy as half a turn away: RMS about pi / 2.
+        let spread = fused.yaw_spread.expect("copies give a spread");
+        assert!((spread - std::f32::consts::FRAC_PI_2).abs() < 0.05, "spread {spread}");
+    }
+
+    #[test]
+    fn copies_that_agree_scatter_little_about_the_fused_yaw() {
+        let steps = angles(4);
+        let errors = [0.05f32, -0.03, 0.01, -0.02];
+        let copies: Vec<Encoding> = steps
+            .iter()
+            .zip(errors)
+            .map(|(&a, e)| encoding(yaw_q(2.9 + a + e), 0.0))
+            .collect();
+        let spread = fuse(&copies, &steps).0.yaw_spread.expect("copies give a spread");
+        let rms = (errors.iter().map(|e| (e - 0.0025).powi(2)).sum::<f32>() / 4.0).sqrt();
+        assert!((spread - rms).abs() < 0.005, "spread {spread}, the errors' RMS {rms}");
     }
 
     #[test]

@@ -2,9 +2,12 @@
 //!
 //! - The encoder's yaw, every frame: noisy, and for near-symmetric bodies sometimes the back taken
 //!   for the front, now and then wild. It measures the angle (front or back, whichever it more
-//!   likely read) and votes once per frame on which way is forward (`heading_encoder_vote`).
+//!   likely read; noisier when the frame's yaw copies disagree) and votes once per frame on which
+//!   way is forward (`heading_encoder_vote`).
 //! - The direction of motion of the object's centre, when it moves faster than a threshold: a
-//!   walking subject faces where it goes. It measures the angle and votes strongly on the sense.
+//!   walking subject faces where it goes. It measures the angle and votes on the sense: as much
+//!   as an encoder frame, and `heading_walk_vote` once the centre has gone somewhere
+//!   (`motion_walk_travel_m`), since the centre of a body turning in place also sweeps about.
 //!
 //! The angle and its rate are a constant-turn-rate Kalman filter. The encoder's yaw is read as a
 //! mixture: the front as the track has it, the back taken for the front (`heading_back_share`), or
@@ -24,8 +27,8 @@ use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
 use super::settings::TrackSettings;
 
-/// Vote per frame of motion on the sense (log-odds units): a strong witness of front and back (the
-/// encoder's vote per frame is `heading_encoder_vote`).
+/// Vote per frame of motion that has not gone anywhere yet on the sense (log-odds units; a walk
+/// votes `heading_walk_vote`, an encoder frame `heading_encoder_vote`).
 const MOTION_VOTE: f64 = 1.0;
 /// Sense evidence a new track starts with: a few contrary frames may still turn it round.
 const INITIAL_SENSE: f64 = 1.0;
@@ -98,7 +101,17 @@ struct Motion {
     window_s: f64,
     min_speed: f64,
     min_travel: f64,
+    /// A motion that travelled this far over the horizon is a walk: it votes `walk_vote`.
+    walk_travel: f64,
     samples: VecDeque<(f64, f64, f64)>,
+}
+
+/// The motion of the centre in one frame: its direction and whether it is a walk that went
+/// somewhere (travelled `motion_walk_travel_m`).
+#[derive(Debug, Clone, Copy)]
+struct Moved {
+    velocity: (f64, f64),
+    walked: bool,
 }
 
 /// The travel test's horizon, in motion windows.
@@ -111,7 +124,7 @@ const STEADY_MAX_TURN: f64 = std::f64::consts::FRAC_PI_4;
 
 impl Motion {
     /// A new position: the walk's velocity if there is one.
-    fn push(&mut self, t: f64, x: f64, y: f64) -> Option<(f64, f64)> {
+    fn push(&mut self, t: f64, x: f64, y: f64) -> Option<Moved> {
         self.samples.push_back((t, x, y));
         let horizon = self.horizon_s();
         while self.samples.front().is_some_and(|(t0, _, _)| t - t0 > horizon) {
@@ -129,25 +142,23 @@ impl Motion {
         let least = STEADY_SPEED_SHARE * self.min_speed;
         let turn = wrap(first.1.atan2(first.0) - second.1.atan2(second.0)).abs();
         let steady = first.0.hypot(first.1) >= least && second.0.hypot(second.1) >= least && turn < STEADY_MAX_TURN;
+        if !steady {
+            return None;
+        }
         // Before the samples span the travel test's horizon, the window's tests alone decide.
-        (steady && self.travelled(t) != Some(false)).then_some(velocity)
+        let travel = self.travel(t);
+        let gate = self.min_travel <= 0.0 || travel.is_none_or(|d| d >= self.min_travel);
+        let walked = self.walk_travel > 0.0 && travel.is_some_and(|d| d >= self.walk_travel);
+        gate.then_some(Moved { velocity, walked })
     }
 
     /// How long the samples are kept (s).
     fn horizon_s(&self) -> f64 {
-        if self.min_travel > 0.0 {
-            TRAVEL_WINDOWS * self.window_s
-        } else {
-            self.window_s
-        }
+        TRAVEL_WINDOWS * self.window_s
     }
 
-    /// Whether the centre travelled `min_travel` over the horizon: None before the samples span
-    /// most of it, always Some(true) when that is 0.
-    fn travelled(&self, t: f64) -> Option<bool> {
-        if self.min_travel <= 0.0 {
-            return Some(true);
-        }
+    /// How far the centre travelled over the horizon (m): None before the samples span most of it.
+    fn travel(&self, t: f64) -> Option<f64> {
         let horizon = self.horizon_s();
         let &(start, _, _) = self.samples.front()?;
         if t - start < 0.8 * horizon {
@@ -163,7 +174,7 @@ impl Motion {
         };
         let (x0, y0) = mean(&|time| time <= start + horizon / 4.0);
         let (x1, y1) = mean(&|time| time >= t - horizon / 4.0);
-        Some((x1 - x0).hypot(y1 - y0) >= self.min_travel)
+        Some((x1 - x0).hypot(y1 - y0))
     }
 }
 
@@ -196,6 +207,8 @@ pub struct HeadingFilter {
     motion_var: f64,
     max_sense: f64,
     encoder_vote: f64,
+    copy_spread_scale: f64,
+    walk_vote: f64,
     /// The encoder's reading as a mixture: shares of wild readings and of back-for-front ones.
     wild_share: f64,
     back_share: f64,
@@ -220,12 +233,15 @@ impl HeadingFilter {
             motion_var: (settings.motion_heading_std_deg as f64).to_radians().powi(2),
             max_sense: settings.heading_flip_evidence as f64,
             encoder_vote: settings.heading_encoder_vote as f64,
+            copy_spread_scale: settings.heading_copy_spread_scale as f64,
+            walk_vote: settings.heading_walk_vote as f64,
             wild_share: settings.heading_wild_share as f64,
             back_share: settings.heading_back_share as f64,
             motion: Motion {
                 window_s: settings.motion_window_s as f64,
                 min_speed: settings.motion_min_speed_mps as f64,
                 min_travel: settings.motion_min_travel_m as f64,
+                walk_travel: settings.motion_walk_travel_m as f64,
                 samples: VecDeque::new(),
             },
             state: None,
@@ -244,6 +260,13 @@ impl HeadingFilter {
     /// One frame: the encoder's yaw (radians), the object's centre (m, gravity frame) and the time
     /// since the previous frame (s).
     pub fn update(&mut self, encoder_yaw: f64, centre: [f64; 2], dt: f64) -> Heading {
+        self.update_read(encoder_yaw, None, centre, dt)
+    }
+
+    /// `update`, with the scatter of the encoder's yaw copies about its reading this frame
+    /// (radians; `Encoding::yaw_spread`) when there are copies: a reading its copies disagree on
+    /// moves the track less (its noise is widened by `heading_copy_spread_scale` times the scatter).
+    pub fn update_read(&mut self, encoder_yaw: f64, copy_spread: Option<f64>, centre: [f64; 2], dt: f64) -> Heading {
         self.time += dt;
         // What this frame counts for, in frames at the votes' rate (a stream without usable stamps
         // gets the nominal rate's dt, so this is 1 at 30 Hz).
@@ -254,23 +277,29 @@ impl HeadingFilter {
             self.jitter_power += weight * (step * step - self.jitter_power);
         }
         self.previous_encoder_yaw = Some(encoder_yaw);
-        let velocity = self.motion.push(self.time, centre[0], centre[1]);
-        let motion = velocity.and_then(|(vx, vy)| {
-            let speed = vx.hypot(vy);
-            // Slower motion points less surely: the spread grows as the speed nears the threshold.
-            (self.from_motion && speed >= self.min_speed).then(|| {
-                (
-                    vy.atan2(vx),
-                    self.motion_var * (2.0 * self.min_speed / speed).max(1.0).powi(2),
-                )
-            })
-        });
+        let moved = self.motion.push(self.time, centre[0], centre[1]);
+        let motion = moved.and_then(
+            |Moved {
+                 velocity: (vx, vy),
+                 walked,
+             }| {
+                let speed = vx.hypot(vy);
+                // Slower motion points less surely: the spread grows as the speed nears the threshold.
+                (self.from_motion && speed >= self.min_speed).then(|| {
+                    (
+                        vy.atan2(vx),
+                        self.motion_var * (2.0 * self.min_speed / speed).max(1.0).powi(2),
+                        if walked { self.walk_vote } else { MOTION_VOTE },
+                    )
+                })
+            },
+        );
         let (mut x, mut p, mut sense) = match self.state {
             Some(s) => s,
             None => {
                 // Start where the motion points if it does (the encoder may face backwards), else
                 // where the encoder points.
-                let start = motion.map(|(m, _)| m).unwrap_or(encoder_yaw);
+                let start = motion.map(|(m, _, _)| m).unwrap_or(encoder_yaw);
                 let start = start + TAU * ((encoder_yaw - start) / TAU).round();
                 let state = (
                     [start, 0.0],
@@ -278,7 +307,7 @@ impl HeadingFilter {
                     INITIAL_SENSE,
                 );
                 self.state = Some(state);
-                return self.heading(state, motion.map(|(m, _)| m), false);
+                return self.heading(state, motion.map(|(m, _, _)| m), false);
             }
         };
         // Predict: constant turn rate, white angular acceleration.
@@ -294,8 +323,8 @@ impl HeadingFilter {
         let encoder_agrees = wrap(encoder_yaw - x[0]).abs() < FRAC_PI_2;
         let vote = frame_weight * self.encoder_vote * (self.measurement_var / self.encoder_variance());
         sense += if encoder_agrees { vote } else { -vote };
-        if let Some((m, _)) = motion {
-            let vote = frame_weight * MOTION_VOTE;
+        if let Some((m, _, vote)) = motion {
+            let vote = frame_weight * vote;
             sense += if wrap(m - x[0]).abs() < FRAC_PI_2 { vote } else { -vote };
         }
         let mut turned_round = false;
@@ -308,11 +337,13 @@ impl HeadingFilter {
 
         // Measurements: the encoder's reading, then the motion's direction (when it agrees on
         // sense). The encoder's noise: as configured, or wider when it jitters more from frame to
-        // frame (an encoder that cannot tell this body's heading scatters over all angles).
-        let encoder_var = self.encoder_variance();
+        // frame (an encoder that cannot tell this body's heading scatters over all angles), and
+        // wider still this frame by its yaw copies' scatter. (Only the angle: the copies' scatter
+        // in the votes too lost on the choice sets, docs/tracking.md "The yaw copies' scatter".)
+        let encoder_var = self.encoder_variance() + (self.copy_spread_scale * copy_spread.unwrap_or(0.0)).powi(2);
         let (innovation, weight) = self.encoder_reading(x[0], p[0][0], encoder_yaw, encoder_var);
         Self::kalman(&mut x, &mut p, innovation, encoder_var / weight.max(MIN_ENCODER_WEIGHT));
-        if let Some((m, variance)) = motion {
+        if let Some((m, variance, _)) = motion {
             let innovation = wrap(m - x[0]);
             if innovation.abs() < FRAC_PI_2 {
                 Self::correct(&mut x, &mut p, innovation, variance);
@@ -320,7 +351,7 @@ impl HeadingFilter {
         }
         let state = (x, p, sense);
         self.state = Some(state);
-        self.heading(state, motion.map(|(m, _)| m), turned_round)
+        self.heading(state, motion.map(|(m, _, _)| m), turned_round)
     }
 
     /// The encoder's noise variance now: the configured one, or half its recent jitter if larger.

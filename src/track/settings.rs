@@ -73,6 +73,9 @@ pub struct TrackSettings {
     /// A walk goes somewhere: the motion is used only once the centre travelled this far (m) over
     /// twice `motion_window_s` (0: no such test).
     pub motion_min_travel_m: f32,
+    /// A motion whose centre travelled this far (m) over twice `motion_window_s` is a walk, and
+    /// votes `heading_walk_vote` on front and back instead of 1 (0: no walks told apart).
+    pub motion_walk_travel_m: f32,
     /// Standard deviation of the motion direction as a measurement (degrees), at twice the
     /// minimum speed and above; it widens towards the minimum speed.
     pub motion_heading_std_deg: f32,
@@ -82,6 +85,11 @@ pub struct TrackSettings {
     /// Front/back evidence one encoder frame adds (log-odds; a walking frame adds 1), before it is
     /// scaled down for an encoder that jitters more than `heading_std_deg`.
     pub heading_encoder_vote: f32,
+    /// A frame's encoder reading counts as noisier by this many times the scatter of its yaw
+    /// copies (their RMS about the reading, added to the noise in quadrature; 0: copies ignored).
+    pub heading_copy_spread_scale: f32,
+    /// Front/back evidence one frame of a walk adds (log-odds; other motion adds 1).
+    pub heading_walk_vote: f32,
     /// Share of encoder yaws taken to be wild (any angle): a reading that fits neither the track's
     /// front nor its back moves it little.
     pub heading_wild_share: f32,
@@ -112,9 +120,12 @@ impl Default for TrackSettings {
             motion_window_s: 1.0,
             motion_min_speed_mps: 0.3,
             motion_min_travel_m: 0.0,
+            motion_walk_travel_m: 0.5,
             motion_heading_std_deg: 20.0,
-            heading_flip_evidence: 6.0,
-            heading_encoder_vote: 0.5,
+            heading_flip_evidence: 12.0,
+            heading_encoder_vote: 1.0,
+            heading_copy_spread_scale: 1.0,
+            heading_walk_vote: 3.0,
             heading_wild_share: 0.1,
             heading_back_share: 0.05,
             objects: Default::default(),
@@ -139,6 +150,7 @@ impl TrackSettings {
             ("motion_heading_std_deg", self.motion_heading_std_deg),
             ("heading_flip_evidence", self.heading_flip_evidence),
             ("heading_encoder_vote", self.heading_encoder_vote),
+            ("heading_walk_vote", self.heading_walk_vote),
         ];
         for (name, value) in positive {
             if !(value > 0.0 && value.is_finite()) {
@@ -154,11 +166,14 @@ impl TrackSettings {
                 return Err(format!("track.{name} = {value} must be at least 0 and below {below}"));
             }
         }
-        if !(self.motion_min_travel_m >= 0.0 && self.motion_min_travel_m.is_finite()) {
-            return Err(format!(
-                "track.motion_min_travel_m = {} must be at least 0 and finite",
-                self.motion_min_travel_m
-            ));
+        for (name, value) in [
+            ("heading_copy_spread_scale", self.heading_copy_spread_scale),
+            ("motion_min_travel_m", self.motion_min_travel_m),
+            ("motion_walk_travel_m", self.motion_walk_travel_m),
+        ] {
+            if !(value >= 0.0 && value.is_finite()) {
+                return Err(format!("track.{name} = {value} must be at least 0 and finite"));
+            }
         }
         if self.switch_frames == 0 {
             return Err("track.switch_frames must be at least 1".into());

@@ -30,7 +30,13 @@ impl StreamTracker {
     /// its published state.
     pub fn state(&mut self, node: &str, frame: &Observed, dt: f32) -> State {
         let e = frame.encoding;
-        let tracked = self.update((&e.z_i_mean, &e.z_i_logvar), e.q, &e.z_e_mean, frame.centre_m, dt);
+        let tracked = self.update_read(
+            (&e.z_i_mean, &e.z_i_logvar),
+            (e.q, e.yaw_spread),
+            &e.z_e_mean,
+            frame.centre_m,
+            dt,
+        );
         let update = tracked.shape;
         if let Some(change) = update.change {
             log::info!(
@@ -63,6 +69,7 @@ impl StreamTracker {
                 q: pose.q_raw,
                 yaw: pose.yaw_raw,
                 q_confidence: confidence_from_log_variance(&e.z_r_logvar),
+                yaw_spread: e.yaw_spread,
                 z_e: e.z_e_mean.clone(),
                 z_e_var: variances(&e.z_e_logvar),
                 z_i: e.z_i_mean.clone(),

@@ -38,6 +38,18 @@ impl StreamTracker {
     /// One encoded frame: z_I (mean, log-variance), the rotation q [w, x, y, z], z_E, the object's
     /// centre (m, gravity frame) and the time since the stream's previous frame (s).
     pub fn update(&mut self, z_i: (&[f32], &[f32]), q: [f32; 4], z_e: &[f32], centre_m: [f32; 3], dt: f32) -> Tracked {
+        self.update_read(z_i, (q, None), z_e, centre_m, dt)
+    }
+
+    /// `update` with the scatter of the encoder's yaw copies (`Encoding::yaw_spread`) beside q.
+    pub fn update_read(
+        &mut self,
+        z_i: (&[f32], &[f32]),
+        (q, yaw_spread): ([f32; 4], Option<f32>),
+        z_e: &[f32],
+        centre_m: [f32; 3],
+        dt: f32,
+    ) -> Tracked {
         let shape = self.shape.update(z_i.0, z_i.1);
         if shape.change.is_some() {
             self.heading.reset();
@@ -46,9 +58,10 @@ impl StreamTracker {
         let heading = match self.mode {
             HeadingMode::OneEuro => None,
             HeadingMode::Tracker => {
+                let centre = [centre_m[0] as f64, centre_m[1] as f64];
                 let heading =
                     self.heading
-                        .update(pose.yaw_raw as f64, [centre_m[0] as f64, centre_m[1] as f64], dt as f64);
+                        .update_read(pose.yaw_raw as f64, yaw_spread.map(f64::from), centre, dt as f64);
                 // Keep the smoothed rotation's tilt, give it the tracked yaw.
                 pose.q = with_yaw(pose.q, heading.yaw as f32);
                 pose.yaw = heading.yaw as f32;

@@ -445,6 +445,52 @@ fn a_constant_rate_turn_in_place_is_followed_with_bounded_lag() {
     );
 }
 
+/// An idle subject facing 1 rad whose encoder reads 70 degrees off for 8 frames from frame 90
+/// (a slide), those frames' yaw copies scattering by `burst_spread` (the others' by 3 degrees):
+/// the track's largest departure from the truth (degrees).
+fn departure_during_a_slide(settings: &TrackSettings, burst_spread: f64) -> f64 {
+    let mut filter = HeadingFilter::new(settings);
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let noise = Normal::new(0.0, 10f64.to_radians()).unwrap();
+    let truth = 1.0;
+    let mut worst: f64 = 0.0;
+    for step in 0..150 {
+        let slid = (90..98).contains(&step);
+        let measured = truth + noise.sample(&mut rng) + if slid { 70f64.to_radians() } else { 0.0 };
+        let spread = if slid { burst_spread } else { 3f64.to_radians() };
+        let heading = filter.update_read(measured, Some(spread), [0.0, 0.0], DT);
+        if step >= 60 {
+            worst = worst.max(wrap_deg(heading.yaw - truth).abs());
+        }
+    }
+    worst
+}
+
+#[test]
+fn readings_whose_yaw_copies_disagree_move_the_track_less() {
+    let settings = TrackSettings::default();
+    let agreeing = departure_during_a_slide(&settings, 3f64.to_radians());
+    let disagreeing = departure_during_a_slide(&settings, 60f64.to_radians());
+    assert!(
+        agreeing > 20.0,
+        "premise: agreeing copies pull the track {agreeing:.1} deg"
+    );
+    assert!(
+        disagreeing < 0.5 * agreeing,
+        "copies scattering by 60 deg pull it {disagreeing:.1} deg, agreeing ones {agreeing:.1}"
+    );
+    // The setting's 0 ignores the copies' scatter.
+    let ignoring = TrackSettings {
+        heading_copy_spread_scale: 0.0,
+        ..TrackSettings::default()
+    };
+    let (a, d) = (
+        departure_during_a_slide(&ignoring, 3f64.to_radians()),
+        departure_during_a_slide(&ignoring, 60f64.to_radians()),
+    );
+    assert!((a - d).abs() < 1e-9, "ignored, yet {a:.2} against {d:.2} deg");
+}
+
 /// An idle subject whose encoder takes the back for the front for `burst` frames from frame 90:
 /// panics if the track leaves the truth by 15 degrees or turns round.
 fn burst_of_back_to_front_frames(settings: &TrackSettings, burst: usize) {
@@ -470,7 +516,8 @@ fn burst_of_back_to_front_frames(settings: &TrackSettings, burst: usize) {
 
 #[test]
 fn a_burst_of_back_to_front_measurements_does_not_turn_the_track_round() {
-    // Default encoder vote (0.5): 10 frames (0.33 s) are outvoted by the evidence gathered before.
+    // Default encoder vote (1, evidence kept up to 12): 10 frames (0.33 s) are outvoted by the
+    // evidence gathered before.
     burst_of_back_to_front_frames(&TrackSettings::default(), 10);
     // A weaker vote outlasts a longer burst: 20 frames (0.67 s).
     let patient = TrackSettings {
@@ -544,12 +591,10 @@ fn a_jump_of_the_centre_of_a_subject_standing_still_is_not_a_walk() {
     }
 }
 
-#[test]
-fn a_walking_subject_is_faced_the_way_it_walks_even_when_the_encoder_says_backwards() {
-    // Walking along +x then curving, the encoder consistently 180 degrees off (a body the encoder
-    // reads back to front): the motion votes turn the track round within about a second.
-    let settings = TrackSettings::default();
-    let mut filter = HeadingFilter::new(&settings);
+/// Walking along +x then curving, the encoder consistently 180 degrees off (a body the encoder
+/// reads back to front): the worst heading error after the first 2 s (degrees).
+fn worst_error_walking_read_backwards(settings: &TrackSettings) -> f64 {
+    let mut filter = HeadingFilter::new(settings);
     let mut rng = ChaCha8Rng::seed_from_u64(13);
     let noise = Normal::new(0.0, 10f64.to_radians()).unwrap();
     let position_noise = Normal::new(0.0, 0.01).unwrap();
@@ -566,11 +611,25 @@ fn a_walking_subject_is_faced_the_way_it_walks_even_when_the_encoder_says_backwa
             late_errors.push(wrap_deg(heading.yaw - truth).abs());
         }
     }
-    let worst = late_errors.iter().cloned().fold(0.0, f64::max);
+    late_errors.iter().cloned().fold(0.0, f64::max)
+}
+
+#[test]
+fn a_walking_subject_is_faced_the_way_it_walks_even_when_the_encoder_says_backwards() {
+    // A walk (the centre goes somewhere) outvotes the encoder: the track comes round.
+    let worst = worst_error_walking_read_backwards(&TrackSettings::default());
     assert!(
         worst < 20.0,
         "after 2 s the track faces the walking direction (worst {worst:.1} deg)"
     );
+    // The premise: a motion that votes no more than the encoder, as a swaying centre's does,
+    // cancels it, and the track never comes round.
+    let walks_not_told_apart = TrackSettings {
+        heading_walk_vote: 1.0,
+        ..TrackSettings::default()
+    };
+    let worst = worst_error_walking_read_backwards(&walks_not_told_apart);
+    assert!(worst > 90.0, "worst {worst:.1} deg without the walk's vote");
 }
 
 #[test]
@@ -701,6 +760,24 @@ fn with_a_least_travel_a_centre_that_sweeps_back_and_forth_is_not_a_walk() {
         with_motion > 30,
         "only {with_motion} frames of motion without the travel test"
     );
+}
+
+#[test]
+fn a_centre_that_sweeps_back_and_forth_does_not_outvote_the_encoder() {
+    // The default votes: an encoder frame as much as a frame of motion that did not go anywhere.
+    let (with_motion, turned) = sweeping_centre(&TrackSettings::default());
+    assert!(
+        with_motion > 30,
+        "premise: the sweep passes the window's tests ({with_motion} frames)"
+    );
+    assert!(!turned, "the sweep turned the track round");
+    // The previous defaults (the encoder voting half a motion frame) let the sweep turn it round.
+    let motion_first = TrackSettings {
+        heading_encoder_vote: 0.5,
+        heading_flip_evidence: 6.0,
+        ..TrackSettings::default()
+    };
+    assert!(sweeping_centre(&motion_first).1, "premise: the old votes turn round");
 }
 
 #[test]
