@@ -50,6 +50,9 @@ bench-tracking-idle: onnxruntime node sim
 	bench/tracking.sh idle-holdout
 	bench/tracking.sh still-tune
 	bench/tracking.sh still-holdout
+	bench/tracking.sh idle-extra-1
+	bench/tracking.sh idle-extra-2
+	bench/tracking.sh still-extra-1
 
 # The multi-object benchmark (docs/tracking.md "Several objects"): its recordings, the candidate
 # detection and the tracking (evaluate with config/objects.toml) on `tune`, `holdout`, `final`, the
