@@ -9,7 +9,8 @@
 //!   as an encoder frame, and `heading_walk_vote` once the centre has gone somewhere
 //!   (`motion_walk_travel_m`), since the centre of a body turning in place also sweeps about.
 //!
-//! The angle and its rate are a constant-turn-rate Kalman filter. The encoder's yaw is read as a
+//! The angle and its rate are a Kalman filter whose turn rate fades unless the readings renew it
+//! (`heading_rate_time_s`; 0: a constant-turn-rate model). The encoder's yaw is read as a
 //! mixture: the front as the track has it, the back taken for the front (`heading_back_share`), or
 //! a wild reading at any angle (`heading_wild_share`). A reading is used as the more likely of the
 //! first two, weighted by how likely it is to be that rather than wild, so a reading near 90
@@ -209,6 +210,7 @@ pub struct HeadingFilter {
     encoder_vote: f64,
     copy_spread_scale: f64,
     walk_vote: f64,
+    rate_time_s: f64,
     /// The encoder's reading as a mixture: shares of wild readings and of back-for-front ones.
     wild_share: f64,
     back_share: f64,
@@ -235,6 +237,7 @@ impl HeadingFilter {
             encoder_vote: settings.heading_encoder_vote as f64,
             copy_spread_scale: settings.heading_copy_spread_scale as f64,
             walk_vote: settings.heading_walk_vote as f64,
+            rate_time_s: settings.heading_rate_time_s as f64,
             wild_share: settings.heading_wild_share as f64,
             back_share: settings.heading_back_share as f64,
             motion: Motion {
@@ -310,12 +313,20 @@ impl HeadingFilter {
                 return self.heading(state, motion.map(|(m, _, _)| m), false);
             }
         };
-        // Predict: constant turn rate, white angular acceleration.
+        // Predict: the turn rate kept, or fading with `heading_rate_time_s` (a body turns for a
+        // moment, and a track that trusts poor readings less must not coast on an old rate),
+        // and white angular acceleration.
+        let a = if self.rate_time_s > 0.0 {
+            (-dt / self.rate_time_s).exp()
+        } else {
+            1.0
+        };
         x[0] += x[1] * dt;
+        x[1] *= a;
         let (dt2, dt3, dt4) = (dt * dt, dt * dt * dt, dt * dt * dt * dt);
         let p00 = p[0][0] + dt * (p[1][0] + p[0][1]) + dt2 * p[1][1] + self.accel_var * dt4 / 4.0;
-        let p01 = p[0][1] + dt * p[1][1] + self.accel_var * dt3 / 2.0;
-        let p11 = p[1][1] + self.accel_var * dt2;
+        let p01 = a * (p[0][1] + dt * p[1][1]) + self.accel_var * dt3 / 2.0;
+        let p11 = a * a * p[1][1] + self.accel_var * dt2;
         p = [[p00, p01], [p01, p11]];
 
         // Sense votes, then turn round if the evidence says the track faces backwards.

@@ -64,6 +64,8 @@ pub struct TrackSettings {
     pub heading_std_deg: f32,
     /// Standard deviation of the heading's angular acceleration (rad/s^2): how fast turns may change.
     pub heading_accel_std: f32,
+    /// The turn rate fades with this time constant (s) unless the readings renew it (0: kept).
+    pub heading_rate_time_s: f32,
     /// Use the direction of motion of the object's centre as a heading measurement.
     pub heading_from_motion: bool,
     /// The centre's velocity is its least-squares slope over this window (s).
@@ -116,6 +118,7 @@ impl Default for TrackSettings {
             heading: HeadingMode::Tracker,
             heading_std_deg: 12.0,
             heading_accel_std: 12.0,
+            heading_rate_time_s: 0.5,
             heading_from_motion: true,
             motion_window_s: 1.0,
             motion_min_speed_mps: 0.3,
@@ -168,6 +171,7 @@ impl TrackSettings {
         }
         for (name, value) in [
             ("heading_copy_spread_scale", self.heading_copy_spread_scale),
+            ("heading_rate_time_s", self.heading_rate_time_s),
             ("motion_min_travel_m", self.motion_min_travel_m),
             ("motion_walk_travel_m", self.motion_walk_travel_m),
         ] {

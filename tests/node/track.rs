@@ -491,6 +491,40 @@ fn readings_whose_yaw_copies_disagree_move_the_track_less() {
     assert!((a - d).abs() < 1e-9, "ignored, yet {a:.2} against {d:.2} deg");
 }
 
+/// A subject turning in place at 1.5 rad/s for 1.5 s that then stands, the encoder read well
+/// (copies scattering by 3 degrees) while it turns and poorly (by 120 degrees) for the 1.5 s after:
+/// the track's largest overshoot past where the subject stopped (degrees).
+fn overshoot_after_a_turn(settings: &TrackSettings) -> f64 {
+    let mut filter = HeadingFilter::new(settings);
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let noise = Normal::new(0.0, 8f64.to_radians()).unwrap();
+    let mut worst: f64 = 0.0;
+    for step in 0..150 {
+        let time = step as f64 * DT;
+        let truth = 1.5 * time.min(1.5);
+        let spread = if time < 1.5 { 3f64 } else { 120.0 }.to_radians();
+        let heading = filter.update_read(truth + noise.sample(&mut rng), Some(spread), [0.0, 0.0], DT);
+        if time >= 1.5 {
+            worst = worst.max(wrap_deg(heading.yaw - truth));
+        }
+    }
+    worst
+}
+
+#[test]
+fn the_turn_rate_fades_so_poor_readings_after_a_turn_do_not_carry_the_track_on() {
+    let fading = overshoot_after_a_turn(&TrackSettings::default());
+    let kept = overshoot_after_a_turn(&TrackSettings {
+        heading_rate_time_s: 0.0,
+        ..TrackSettings::default()
+    });
+    assert!(kept > 20.0, "premise: a kept rate coasts {kept:.1} deg past the stop");
+    assert!(
+        fading < 0.6 * kept,
+        "the fading rate overshoots {fading:.1} deg, the kept one {kept:.1}"
+    );
+}
+
 /// An idle subject whose encoder takes the back for the front for `burst` frames from frame 90:
 /// panics if the track leaves the truth by 15 degrees or turns round.
 fn burst_of_back_to_front_frames(settings: &TrackSettings, burst: usize) {
