@@ -84,8 +84,9 @@ pub struct TrackSettings {
     /// Most front/back evidence the track keeps (log-odds): how much contrary evidence it takes to
     /// turn the track round by 180 degrees.
     pub heading_flip_evidence: f32,
-    /// Front/back evidence one encoder frame adds (log-odds; a walking frame adds 1), before it is
-    /// scaled down for an encoder that jitters more than `heading_std_deg`.
+    /// Front/back evidence one encoder frame adds (log-odds; a frame of motion adds 1, of a walk
+    /// `heading_walk_vote`), before it is scaled down for an encoder that jitters more than
+    /// `heading_std_deg`.
     pub heading_encoder_vote: f32,
     /// A frame's encoder reading counts as noisier by this many times the scatter of its yaw
     /// copies (their RMS about the reading, added to the noise in quadrature; 0: copies ignored).
