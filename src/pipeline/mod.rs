@@ -263,6 +263,18 @@ pub fn run(
             config.track.shape_variance_scale / calibration,
             config.track.shape_variance_scale
         );
+        // The heading filter's noise (12 degrees) was chosen on the 4 yaw copies' fused reading;
+        // for one copy 25 was (config/default.toml; docs/tracking.md "The yaw copies' scatter,
+        // and a walk's vote" has what 12 does to a standing subject with one copy).
+        let t = &config.track;
+        if config.model.yaw_copies == 1 && t.heading == crate::config::HeadingMode::Tracker && t.heading_std_deg < 20.0
+        {
+            log::warn!(
+                "track: heading_std_deg = {} suits yaw_copies = 4; with yaw_copies = 1 set it to about 25, \
+                 or idle subjects' filtered heading may be worse than the raw reading",
+                t.heading_std_deg
+            );
+        }
         threads.push(spawn(
             "track".into(),
             Box::new(move || track(done_rx, publish_tx, &config, &stats)),

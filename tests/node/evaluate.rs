@@ -168,6 +168,36 @@ fn without_truth(from: &Path, to: &Path) {
 }
 
 #[test]
+fn one_yaw_copy_with_the_four_copy_heading_noise_is_warned_about() {
+    let dir = tempfile::tempdir().unwrap();
+    let recording = dir.path().join("switch.mcap");
+    short_recording(&recording);
+    // config/replay.toml with one yaw copy, its relative paths made absolute.
+    let text = std::fs::read_to_string(repo().join("config/replay.toml"))
+        .unwrap()
+        .replace("[model]", "[model]\nyaw_copies = 1")
+        .replace("\"../", &format!("\"{}/", repo().display()));
+    let config = dir.path().join("one-copy.toml");
+    std::fs::write(&config, text).unwrap();
+    let run = |extra: &[&str]| {
+        let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
+            .current_dir(repo())
+            .arg("evaluate")
+            .arg("--config")
+            .arg(&config)
+            .args(extra)
+            .arg(&recording)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&output.stderr).to_string();
+        assert!(output.status.success(), "evaluate failed: {stderr}");
+        stderr.contains("with yaw_copies = 1 set it to about 25")
+    };
+    assert!(run(&[]), "heading_std_deg 12 with one copy is warned about");
+    assert!(!run(&["--set", "heading_std_deg=25"]), "25 is not");
+}
+
+#[test]
 fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
     let dir = tempfile::tempdir().unwrap();
     let with = dir.path().join("switch.mcap");
@@ -288,6 +318,9 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
     for line in &lines {
         assert_eq!(line["truth"].is_null(), stream_of(line) != with_stream, "{line}");
         assert_eq!(line["state"]["raw"]["z_i"].as_array().unwrap().len(), 22);
+        // config/replay.toml runs 4 yaw copies: every state says how far they scatter.
+        let spread = line["state"]["raw"]["yaw_spread"].as_f64().expect("raw.yaw_spread");
+        assert!((0.0..=std::f64::consts::PI).contains(&spread), "{spread}");
     }
     let subjects: std::collections::BTreeSet<&str> =
         lines.iter().filter_map(|l| l["truth"]["subject"].as_str()).collect();
