@@ -13,7 +13,7 @@
 //! measurements). `z_R`, which describes the rotation as seen, is the unturned copy's.
 
 use crate::encoding::Encoding;
-use crate::track::pose::{normalized as unit, turn_rotation, yaw_of};
+use crate::track::pose::{normalized as unit, turn_rotation, unwrap, yaw_of};
 
 /// Copies further than this from the medoid's rotation are outvoted.
 pub const INLIER_DEG: f32 = 45.0;
@@ -44,11 +44,10 @@ fn angle_between(a: &[f32; 4], b: &[f32; 4]) -> f32 {
 /// difference wrapped to (-pi, pi], so a copy that took the back for the front counts as half a
 /// turn).
 fn yaw_spread(votes: &[[f32; 4]], fused: &[f32; 4]) -> f32 {
-    use std::f32::consts::{PI, TAU};
     let centre = yaw_of(fused);
     let sum: f32 = votes
         .iter()
-        .map(|v| ((yaw_of(v) - centre + PI).rem_euclid(TAU) - PI).powi(2))
+        .map(|v| (unwrap(Some(centre), yaw_of(v)) - centre).powi(2))
         .sum();
     (sum / votes.len() as f32).sqrt()
 }

@@ -30,7 +30,7 @@ impl StreamTracker {
     /// its published state.
     pub fn state(&mut self, node: &str, frame: &Observed, dt: f32) -> State {
         let e = frame.encoding;
-        let tracked = self.update_read(
+        let tracked = self.update(
             (&e.z_i_mean, &e.z_i_logvar),
             (e.q, e.yaw_spread),
             &e.z_e_mean,

@@ -35,14 +35,10 @@ impl StreamTracker {
         }
     }
 
-    /// One encoded frame: z_I (mean, log-variance), the rotation q [w, x, y, z], z_E, the object's
-    /// centre (m, gravity frame) and the time since the stream's previous frame (s).
-    pub fn update(&mut self, z_i: (&[f32], &[f32]), q: [f32; 4], z_e: &[f32], centre_m: [f32; 3], dt: f32) -> Tracked {
-        self.update_read(z_i, (q, None), z_e, centre_m, dt)
-    }
-
-    /// `update` with the scatter of the encoder's yaw copies (`Encoding::yaw_spread`) beside q.
-    pub fn update_read(
+    /// One encoded frame: z_I (mean, log-variance), the rotation q [w, x, y, z] with the scatter of
+    /// the encoder's yaw copies (`Encoding::yaw_spread`), z_E, the object's centre (m, gravity
+    /// frame) and the time since the stream's previous frame (s).
+    pub fn update(
         &mut self,
         z_i: (&[f32], &[f32]),
         (q, yaw_spread): ([f32; 4], Option<f32>),

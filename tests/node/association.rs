@@ -186,7 +186,7 @@ fn each_track_keeps_its_own_filters_and_gets_them_back_when_it_returns() {
             let filters = tracks.filters(c.id);
             filters.update(
                 (z, &log_variance),
-                [1.0, 0.0, 0.0, 0.0],
+                ([1.0, 0.0, 0.0, 0.0], None),
                 &[0.0; 4],
                 scene[c.candidate].centre,
                 c.dt,
