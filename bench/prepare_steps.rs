@@ -8,7 +8,9 @@
 //! Decode: the recording's `/camera/depth/points` (the sim's topic) walked as a replay walks it
 //! (the MCAP reader with zstd, PointCloud2 decoding), every pass. Prepare:
 //! `Preparer::prepare_measured` on every decoded frame, every pass, with `[prepare]` from the
-//! config and N_p from its bundle. Prints CPU ms a frame (this
+//! config and N_p from its bundle. Decompress: the MCAP files' zstd chunks alone, each in one call
+//! into a buffer kept from chunk to chunk (the floor of decode for a compressed recording, and what
+//! a one-shot decompression would cost against the reader's streaming one). Prints CPU ms a frame (this
 //! thread's clock), the median pass of each, and a digest of the prepared points (two builds that
 //! prepare every frame alike print the same).
 
@@ -85,6 +87,23 @@ fn main() -> anyhow::Result<()> {
         anyhow::ensure!(decoded > 0, "no {TOPIC} messages in {files:?}");
         decode_ms.push(clock.lap() as f64 * 1e-6 / decoded as f64);
     }
+    let mcaps = files
+        .iter()
+        .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
+        .map(std::fs::read)
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut decompress_ms = Vec::new();
+    for _ in 0..passes {
+        let mut clock = ThreadLap::start();
+        let mut chunks = 0usize;
+        for bytes in &mcaps {
+            chunks += decompress_chunks(bytes)?;
+        }
+        let ns = clock.lap();
+        if chunks > 0 {
+            decompress_ms.push(ns as f64 * 1e-6 / frames.len() as f64);
+        }
+    }
     let mut steps_ms: Vec<Vec<f64>> = vec![Vec::new(); STEPS.len()];
     let (mut kept, mut digest) = (0usize, 0u64);
     for _ in 0..passes {
@@ -116,6 +135,13 @@ fn main() -> anyhow::Result<()> {
         kept / frames.len()
     );
     println!("  {:<20} {:.3}", "decode", median(&mut decode_ms));
+    if !decompress_ms.is_empty() {
+        println!(
+            "  {:<20} {:.3}   of decode: the zstd chunks alone, one call a chunk",
+            "decode.decompress",
+            median(&mut decompress_ms)
+        );
+    }
     let mut prepare = 0.0;
     for (name, ms) in STEPS.iter().zip(steps_ms.iter_mut()) {
         let ms = median(ms);
@@ -124,4 +150,45 @@ fn main() -> anyhow::Result<()> {
     }
     println!("  {:<20} {prepare:.3}", "prepare (sum)");
     Ok(())
+}
+
+/// Decompresses every zstd chunk of an MCAP file in one call each, into one buffer kept from chunk
+/// to chunk; returns how many chunks it decompressed (uncompressed chunks are skipped).
+fn decompress_chunks(bytes: &[u8]) -> anyhow::Result<usize> {
+    use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
+    const OP_CHUNK: u8 = 0x06;
+    let mut reader = LinearReader::new_with_options(LinearReaderOptions::default().with_emit_chunks(true));
+    let mut zstd = zstd::bulk::Decompressor::new()?;
+    let (mut out, mut at, mut chunks) = (Vec::new(), 0usize, 0usize);
+    while let Some(event) = reader.next_event() {
+        match event? {
+            LinearReadEvent::ReadRequest(wanted) => {
+                let n = wanted.min(bytes.len() - at);
+                if n == 0 {
+                    break;
+                }
+                reader.insert(n).copy_from_slice(&bytes[at..at + n]);
+                reader.notify_read(n);
+                at += n;
+            }
+            LinearReadEvent::Record { data, opcode } if opcode == OP_CHUNK => {
+                // start and end time, uncompressed size, CRC, compression (a string), records.
+                let field =
+                    |at: usize, n: usize| data.get(at..at + n).ok_or_else(|| anyhow::anyhow!("a chunk cut short"));
+                let size = u64::from_le_bytes(field(16, 8)?.try_into()?) as usize;
+                let name_len = u32::from_le_bytes(field(28, 4)?.try_into()?) as usize;
+                let compression = field(32, name_len)?;
+                let records_len = u64::from_le_bytes(field(32 + name_len, 8)?.try_into()?) as usize;
+                let records = field(40 + name_len, records_len)?;
+                if compression == b"zstd" {
+                    out.clear();
+                    out.reserve(size);
+                    zstd.decompress_to_buffer(records, &mut out)?;
+                    chunks += 1;
+                }
+            }
+            LinearReadEvent::Record { .. } => {}
+        }
+    }
+    Ok(chunks)
 }
