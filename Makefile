@@ -1,5 +1,5 @@
 # The project's entry points. `make test` is what CI runs (.ci/run).
-.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking bench-tracking-dense bench-tracking-idle bench-multi fuzz soak eval-split device-job
+.PHONY: demo test test-rust test-python binaries sim node venv onnxruntime samples bench-tracking bench-tracking-dense bench-tracking-idle bench-tracking-stand bench-multi fuzz soak eval-split device-job
 
 VENV := .venv
 PYTHON := $(VENV)/bin/python
@@ -53,6 +53,13 @@ bench-tracking-idle: onnxruntime node sim
 	bench/tracking.sh idle-extra-1
 	bench/tracking.sh idle-extra-2
 	bench/tracking.sh still-extra-1
+
+# The 12 scenarios with standing subjects instead of idle ones (a walker's small pose drift): what the
+# pose code z_E does during a walk against while the pose holds still (docs/tracking.md "A pose that holds still").
+bench-tracking-stand: onnxruntime node sim
+	bench/tracking.sh stand-tune
+	bench/tracking.sh stand-holdout
+	bench/tracking.sh stand-final
 
 # The multi-object benchmark (docs/tracking.md "Several objects"): its recordings, the candidate
 # detection and the tracking (evaluate with config/objects.toml) on `tune`, `holdout`, `final`, the

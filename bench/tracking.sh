@@ -23,6 +23,12 @@
 # 20101-20143 and 30101-30123; each N after, 100 more): an idle set holds few recordings, and one
 # recording whose track goes astray moves its p90 by many degrees.
 #
+# `stand-tune`, `stand-holdout` and `stand-final` are the 12 scenarios with every idle subject
+# standing instead (`sim record --motion stand`: idle's place and turn, a walking subject's small
+# pose drift; seeds 40000-40011, 40100-40111, 40200-40211): beside the walks, what the pose code
+# does while the pose holds still (`evaluate`'s "pose code z_E" line; issue 32's walking / standing
+# spread).
+#
 #   bench/tracking.sh SET [OUT_DIR] [-- evaluate options...]
 #
 # SET is tune, holdout or final. Recordings go to OUT_DIR/SET/ (default /work/data/bench-tracking, or
@@ -31,7 +37,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SET=${1:?usage: bench/tracking.sh [dense-]tune|holdout|final|extra-N|idle-tune|idle-holdout|idle-extra-N|still-tune|still-holdout|still-extra-N [OUT_DIR] [-- evaluate options]}
+SET=${1:?usage: bench/tracking.sh [dense-]tune|holdout|final|extra-N|idle-tune|idle-holdout|idle-extra-N|still-tune|still-holdout|still-extra-N|stand-tune|stand-holdout|stand-final [OUT_DIR] [-- evaluate options]}
 shift
 OUT=${BENCH_DIR:-/work/data/bench-tracking}
 if [[ $# -gt 0 && $1 != "--" ]]; then OUT=$1; shift; fi
@@ -39,6 +45,7 @@ if [[ $# -gt 0 && $1 != "--" ]]; then OUT=$1; shift; fi
 CAMERA=(--decimation 2 --ground-extent 1.5)
 case $SET in
   dense-idle-*|dense-still-*) echo "bench/tracking.sh: the idle sets are at the sim's camera defaults already: use ${SET#dense-}" >&2; exit 2 ;;
+  dense-stand-*) echo "bench/tracking.sh: no dense stand sets: use ${SET#dense-}" >&2; exit 2 ;;
   dense-*) CAMERA=(--decimation 1 --ground-extent 4); KIND=${SET#dense-}; OFFSET=5000 ;;
   idle-*|still-*) KIND=$SET; OFFSET=0 ;;
   *) KIND=$SET; OFFSET=0 ;;
@@ -50,11 +57,14 @@ case $KIND in
   still-holdout) BASE=7100 ;;
   idle-extra-[1-9]|idle-extra-[1-9][0-9]) BASE=$((20000 + 100 * ${KIND#idle-extra-})) ;;
   still-extra-[1-9]|still-extra-[1-9][0-9]) BASE=$((30000 + 100 * ${KIND#still-extra-})) ;;
+  stand-tune) BASE=40000 ;;
+  stand-holdout) BASE=40100 ;;
+  stand-final) BASE=40200 ;;
   tune) BASE=100 ;;
   holdout) BASE=200 ;;
   final) BASE=300 ;;
   extra-[1-9]|extra-[1-9][0-9]) BASE=$((1000 + 100 * ${KIND#extra-})) ;;
-  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N, each also as dense-...; idle-tune, idle-holdout, idle-extra-N, still-tune, still-holdout, still-extra-N)" >&2; exit 2 ;;
+  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N, each also as dense-...; idle-tune, idle-holdout, idle-extra-N, still-tune, still-holdout, still-extra-N, stand-tune, stand-holdout, stand-final)" >&2; exit 2 ;;
 esac
 BASE=$((BASE + OFFSET))
 
@@ -131,6 +141,10 @@ fi
 index=0
 for scenario in "${SCENARIOS[@]}"; do
   IFS='|' read -r name motion families duration switches distance <<<"$scenario"
+  if [[ $KIND == stand-* && $motion == idle ]]; then
+    name=stand${name#idle}
+    motion=stand
+  fi
   seed=$((BASE + index))
   index=$((index + 1))
   switch_at=()

@@ -70,6 +70,9 @@ enum MotionArg {
     /// Back and forth along a straight line across the view (others only by intent, though any
     /// subject may).
     Cross,
+    /// Standing and turning in place as `idle` does, the pose drifting only as much as a walking
+    /// subject's does around its gait (idle shifts through the whole pose prior).
+    Stand,
 }
 
 impl From<MotionArg> for MotionKind {
@@ -78,6 +81,7 @@ impl From<MotionArg> for MotionKind {
             MotionArg::Walk => MotionKind::Walk,
             MotionArg::Idle => MotionKind::Idle,
             MotionArg::Cross => MotionKind::Cross,
+            MotionArg::Stand => MotionKind::Stand,
         }
     }
 }

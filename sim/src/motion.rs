@@ -4,12 +4,15 @@
 //! heading (yaw) and position change smoothly, and where occasionally another individual replaces
 //! the first, so that fusing `z_I` and detecting the change can be tested against ground truth.
 //!
-//! Three kinds of motion: `walk` (a gait cycle driven by the distance travelled along a smooth
+//! Four kinds of motion: `walk` (a gait cycle driven by the distance travelled along a smooth
 //! figure-of-eight path, heading along the path), `cross` (the same gait, back and forth along a
 //! straight line 4 m long across the view, turning at its ends: a subject that passes in front of or
-//! behind another, so that their paths cross in the image) and `idle` (standing, turning slowly in
-//! place, shifting through poses of the sigma 0.2 prior). Both add a slow random "wobble" so no two cycles
-//! repeat exactly. Every frame is a pure function of the spec and its index.
+//! behind another, so that their paths cross in the image), `idle` (standing, turning slowly in
+//! place, shifting through poses of the sigma 0.2 prior) and `stand` (idle's place and turn with
+//! only a walking subject's pose drift: a walk without the gait and the path, so that what a pose
+//! code does during a walk can be told from what it does while the pose holds still). All add a
+//! slow random "wobble" so no two cycles repeat exactly. Every frame is a pure function of the spec
+//! and its index.
 
 use std::f64::consts::TAU;
 
@@ -30,6 +33,7 @@ pub enum MotionKind {
     Walk,
     Idle,
     Cross,
+    Stand,
 }
 
 impl MotionKind {
@@ -300,7 +304,7 @@ impl PathPhases {
                     [speed * direction[0], speed * direction[1]],
                 )
             }
-            MotionKind::Idle => ([0.3 * ax * self.x.cos(), 0.3 * ay * self.y.cos()], [0.0, 0.0]),
+            MotionKind::Idle | MotionKind::Stand => ([0.3 * ax * self.x.cos(), 0.3 * ay * self.y.cos()], [0.0, 0.0]),
         }
     }
 }
@@ -342,7 +346,7 @@ impl Path {
                         gait_phase,
                     });
                 }
-                MotionKind::Idle => samples.push(PathSample {
+                MotionKind::Idle | MotionKind::Stand => samples.push(PathSample {
                     position,
                     yaw: phases.start_yaw + IDLE_TURN_RATE * t,
                     gait_phase: 0.0,
@@ -394,8 +398,12 @@ impl Wobble {
     const COMPONENTS: usize = 3;
 
     fn sample(subject: &Subject, kind: MotionKind, rng: &mut impl Rng) -> Self {
-        // Walking adds a small drift on top of the gait; idling is all drift, at the prior's scale.
-        let scale = if kind.walks() { WALK_WOBBLE } else { 1.0 };
+        // Walking adds a small drift on top of the gait, and standing the same drift alone; idling
+        // is all drift, at the prior's scale.
+        let scale = match kind {
+            MotionKind::Walk | MotionKind::Cross | MotionKind::Stand => WALK_WOBBLE,
+            MotionKind::Idle => 1.0,
+        };
         let poses = (0..Self::COMPONENTS)
             .map(|_| {
                 let theta = subject.sample_theta(PoseMode::Gaussian, rng);

@@ -3,7 +3,7 @@
 use gdvae_sim::camera::{ground_box, DepthCamera, Intrinsics, Scene, StereoModel};
 use gdvae_sim::family::Family;
 use gdvae_sim::mesh::Mesh;
-use gdvae_sim::motion::{Motion, MotionKind, MotionSpec, MAX_TURN_RATE};
+use gdvae_sim::motion::{Motion, MotionKind, MotionSpec, MAX_TURN_RATE, WALK_WOBBLE};
 use gdvae_sim::recording::{write_recording, RecordingOptions, GROUND_TRUTH_TOPIC, POINTS_TOPIC};
 use gdvae_sim::scenario::{Away, Scenario, ViewSpec};
 use gdvae_sim::seeds;
@@ -398,4 +398,36 @@ fn subjects_that_would_pass_through_each_other_are_refused() {
     );
     assert!(scene([0.0, 0.9], 0.0).is_ok(), "no check asked for");
     assert!(scene([-1.8, 0.0], 1.0).is_ok(), "1.8 m behind: never closer than 1 m");
+}
+
+/// `stand`: idle's place and turn, with the pose drifting only as a walking subject's drift does
+/// (`WALK_WOBBLE` of idle's, which shifts through the whole prior), and no gait: the same seed's
+/// idle subject, frame for frame, with every joint angle scaled by `WALK_WOBBLE`.
+#[test]
+fn a_standing_subject_is_the_idle_one_with_a_walkers_small_pose_drift() {
+    let spec = |kind| MotionSpec {
+        kind,
+        duration: 4.0,
+        ..walk_spec(vec![2.0])
+    };
+    let (idle, stand) = (
+        Motion::new(spec(MotionKind::Idle)).unwrap(),
+        Motion::new(spec(MotionKind::Stand)).unwrap(),
+    );
+    let mut largest = 0.0f64;
+    for index in (0..stand.frame_count()).step_by(7) {
+        let (a, b) = (idle.frame(index).unwrap().0, stand.frame(index).unwrap().0);
+        assert_eq!((a.translation, a.yaw, &a.subject), (b.translation, b.yaw, &b.subject));
+        assert_eq!(b.gait_phase, 0.0, "no gait while standing");
+        for (i, s) in a.theta.iter().zip(&b.theta) {
+            assert!(
+                (s - WALK_WOBBLE * i).abs() < 1e-12,
+                "frame {index}: {s} against {i} x {WALK_WOBBLE}"
+            );
+            largest = largest.max(i.abs());
+        }
+    }
+    // The idle subject's pose does move, so the scaling is seen (and this test can fail).
+    assert!(largest > 0.1, "idle's largest joint angle only {largest} rad");
+    assert!(!MotionKind::Stand.walks());
 }
