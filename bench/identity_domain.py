@@ -17,6 +17,8 @@ difference at a time to the kit's whole-surface sample:
 - `recording-on-mesh`: the same, keeping only points within 5 cm of the true surface first;
 - `recording-snapped`: those points moved onto the true surface (the camera's visibility, no
   depth error);
+- `recording-snapped-uncut`: the same without the largest-cluster step (every piece the camera's
+  depth edges and shadows cut off is kept; the floor is gone already);
 - `node`: the node's own raw z_I from the states file.
 
 The Python streams are encoded as the node's yaw copies (`--yaw-copies`, default 4). For each it
@@ -25,7 +27,10 @@ weights) next to the median same-family step between subjects, and the share of 
 the within-subject p99, so the stream where the ratio jumps names the step to fix. Then, per stream
 and family, the pose code's retrieval of the true pose across subjects (`gdvae-node evaluate`'s
 figure: the true-pose distance to the frame of another subject whose z_E is nearest, over the
-median), so the same ladder shows where z_E stops naming the pose.
+median), so the same ladder shows where z_E stops naming the pose; and z_E's spread over one-second
+windows while the subject walks against while it stands (`evaluate`'s figure; the true pose's
+beside it), so the stream where the standing spread jumps names what shakes z_E when the pose
+holds still (the `stand-*` sets of `bench/tracking.sh` have standing subjects).
 
     .venv/bin/python bench/identity_domain.py SET-states.jsonl RECORDINGS_DIR [--every K] [--streams A,B]
 """
@@ -53,7 +58,8 @@ from python_reference import farthest_point_sampling as farthest_points  # noqa:
 
 W = 10
 STREAMS = ("whole", "view", "view-recentred", "view-fps", "camera", "camera-noisy", "recording",
-           "recording-on-mesh", "recording-snapped", "node")
+           "recording-on-mesh", "recording-snapped", "recording-snapped-uncut", "node")
+RECORDED = {"recording", "recording-on-mesh", "recording-snapped", "recording-snapped-uncut"}
 CROP = np.array([-1.2, -1.2, 0.02, 1.2, 1.2, 2.5])  # config/replay.toml's
 NOISY = DepthCamera(dense=30000)  # the sim's OAK-D and the benchmark's --decimation 2
 EXACT = DepthCamera(dense=30000, disparity_sigma=0.0)
@@ -127,6 +133,32 @@ def pose_retrieval(keys, codes, theta):
     return out
 
 
+def pose_spread(keys, rows, values):
+    """(walking, standing) medians of the spread over one-second windows of each subject's rows
+    (root-mean-square distance from the window's mean; windows of at least 5 rows), walking at a
+    true speed over 0.15 m/s and standing under 0.03 m/s, as `gdvae-node evaluate` classes them."""
+    walking, standing = [], []
+    start = 0
+    for i in range(1, len(keys) + 1):
+        if i < len(keys) and keys[i][:2] == keys[start][:2]:
+            continue
+        times = np.array([rows[k]["truth"]["stamp_nanos"] for k in range(start, i)]) * 1e-9
+        where = np.array([rows[k]["truth"]["translation"][:2] for k in range(start, i)])
+        window = np.floor(times - times[0]).astype(int)
+        for w in np.unique(window):
+            members = np.flatnonzero(window == w)
+            if len(members) < 5:
+                continue
+            codes = np.stack([values[start + k] for k in members])
+            spread = np.sqrt(((codes - codes.mean(0)) ** 2).sum(-1).mean())
+            span = times[members[-1]] - times[members[0]]
+            speed = np.linalg.norm(where[members[-1]] - where[members[0]]) / span
+            (walking if speed > 0.15 else standing if speed < 0.03 else []).append(spread)
+        start = i
+    median = lambda v: float(np.median(v)) if v else float("nan")  # noqa: E731
+    return median(walking), median(standing)
+
+
 def segments_of(keys, values):
     """(stream, subject, family, values) per run of rows with one stream and subject: `keys` are
     the rows' (stream, subject, family), `values` their codes, row by row."""
@@ -159,20 +191,24 @@ def camera_clouds(recording, frames):
     return out
 
 
-def as_the_node_prepares(points, truth, rng, points_out, near_mesh=None, snap=False):
+def as_the_node_prepares(points, truth, rng, points_out, near_mesh=None, snap=False, cluster=True):
     """The node's `config/replay.toml` preparation in Python (bench/python_reference.py's steps):
     the recording's camera pose, the crop, the largest 6-cm cluster, farthest points, box
     centring; with `near_mesh` (a KD-tree of the posed subject in the world frame) only the points
     within 5 cm of its surface are kept first (no floor, no strays), and with `snap` each is moved
-    onto the nearest point of the surface sample (no depth noise, the camera's visibility kept)."""
+    onto the nearest point of the surface sample (no depth noise, the camera's visibility kept);
+    without `cluster`, every piece is kept."""
     pose = truth["world_from_camera"]
     world = points @ quaternion_matrix(pose["rotation_xyzw"]).T + np.array(pose["translation"])
     world = world[((world >= CROP[:3]) & (world <= CROP[3:])).all(-1)]
     if near_mesh is not None:
         distance, nearest = near_mesh.query(world)
         world = near_mesh.data[nearest[distance < 0.05]] if snap else world[distance < 0.05]
-    world = largest_cluster(world, 0.06)
-    return box_centred(farthest_points(world, points_out, rng))
+    if cluster:
+        world = largest_cluster(world, 0.06)
+    chosen = farthest_points(world, points_out, rng)
+    # A cloud with fewer points than N_p is padded by repeating points, as the node pads it.
+    return box_centred(chosen[np.arange(points_out) % len(chosen)])
 
 
 def encoder_of(bundle):
@@ -222,7 +258,7 @@ def main():
     rng = np.random.default_rng(args.seed)
     streams = {name: [] for name in args.streams.split(",")}
     clouds = {}
-    if {"recording", "recording-on-mesh", "recording-snapped"} & set(streams):
+    if RECORDED & set(streams):
         for stream in sorted({r["state"]["stream"] for r in rows}):
             frames = {r["truth"]["frame"] for r in rows if r["state"]["stream"] == stream}
             clouds[stream] = camera_clouds(Path(args.recordings) / f"{stream}.mcap", frames)
@@ -242,7 +278,7 @@ def main():
             translation = np.array(t["translation"])
             camera = world_from_object.T @ (np.array(t["world_from_camera"]["translation"]) - translation)
             made = clouds_of(mesh, camera, points, rng, set(streams))
-            if {"recording", "recording-on-mesh", "recording-snapped"} & set(streams):
+            if RECORDED & set(streams):
                 cloud = clouds[row["state"]["stream"]][t["frame"]]
                 if "recording" in streams:
                     made["recording"] = as_the_node_prepares(cloud, t, rng, points)
@@ -251,6 +287,9 @@ def main():
                     made["recording-on-mesh"] = as_the_node_prepares(cloud, t, rng, points, surface)
                 if "recording-snapped" in streams:
                     made["recording-snapped"] = as_the_node_prepares(cloud, t, rng, points, surface, snap=True)
+                if "recording-snapped-uncut" in streams:
+                    made["recording-snapped-uncut"] = as_the_node_prepares(cloud, t, rng, points, surface, snap=True,
+                                                                           cluster=False)
             for name, cloud in made.items():
                 streams[name].append(cloud)
             if (i + 1) % 200 == 0:
@@ -287,6 +326,10 @@ def main():
     for name, values in z_e.items():
         for family, (ratio, floor) in pose_retrieval(keys, values, theta).items():
             print(f"{name:16s} {family:10s} {ratio:6.2f} ({floor:.2f})")
+    print("z_E's spread over 1 s, walking / standing (ratio); the true pose's first")
+    for name, values in [("true pose", theta), *z_e.items()]:
+        walking, standing = pose_spread(keys, rows, values)
+        print(f"{name:16s} {walking:8.3f} / {standing:8.3f} ({walking / standing:.2f})")
 
 
 if __name__ == "__main__":

@@ -416,12 +416,18 @@ pub const JOIN_MIN_FRACTION: f32 = 0.15;
 /// close by or from above shows gaps wider than `radius` where a limb hides what joins its legs to
 /// its torso, and the largest piece alone is a different shape (a false identity change). A piece
 /// at the torso's height (an arm held apart) stays out: joined, it cost walking bipeds heading.
+/// With `limb_min_points` > 0 as well, the clusters of at least that many points that lie within
+/// the largest's footprint grown by `join_m` on each side and wholly in the lower half of its
+/// height are kept too: the legs and feet a stereo camera cuts off where it drops the pixels at a
+/// depth edge or in the other eye's shadow. Without them the pose code cannot see a quadruped's
+/// legs (docs/tracking.md "Legs cut off by the sensor"); a smaller piece there is the floor's noise.
 /// Returns how many points were removed.
 pub fn keep_largest_cluster(
     points: &mut Vec<[f32; 3]>,
     radius: f32,
     stretch: Option<RangeStretch>,
     join_m: f32,
+    limb_min_points: usize,
 ) -> usize {
     if points.len() < 2 {
         return 0;
@@ -458,6 +464,10 @@ pub fn keep_largest_cluster(
             let middle = 0.5 * (low[2] + high[2]);
             let above_or_below = middle < best_low[2] || middle > best_high[2];
             kept[l] |= size[l] >= least && gap(0) <= 0.0 && gap(1) <= 0.0 && gap(2) <= join_m && above_or_below;
+            // A limb: within the grown footprint, wholly in the lower half, not a speck of floor.
+            let within = (0..2).all(|a| low[a] >= best_low[a] - join_m && high[a] <= best_high[a] + join_m);
+            let lower_half = high[2] <= 0.5 * (best_low[2] + best_high[2]);
+            kept[l] |= limb_min_points > 0 && size[l] >= limb_min_points && within && lower_half;
         }
     }
     let before = points.len();

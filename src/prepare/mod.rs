@@ -166,7 +166,13 @@ impl Preparer {
         let mut clock = ThreadLap::start();
         let (mut points, input, seed, stretch) = self.reduce(frame, cpu, &mut clock)?;
         if s.cluster_m > 0.0 {
-            keep_largest_cluster(&mut points, s.cluster_m, stretch, s.cluster_join_m);
+            keep_largest_cluster(
+                &mut points,
+                s.cluster_m,
+                stretch,
+                s.cluster_join_m,
+                s.cluster_join_min_points,
+            );
         }
         cpu[Step::Cluster as usize] += clock.lap();
         let prepared = self.sample(&points, input, seed);

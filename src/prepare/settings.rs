@@ -45,6 +45,11 @@ pub struct PrepareSettings {
     /// 0: the largest cluster alone. Single-object streams only (`[objects]` makes every cluster a
     /// candidate).
     pub cluster_join_m: f32,
+    /// With `cluster_join_m` > 0, keep with the largest cluster the pieces of at least this many
+    /// points within its footprint grown by `cluster_join_m` and wholly in the lower half of its
+    /// height: legs and feet a stereo camera cut off at depth edges and in its shadows (see
+    /// `prepare::keep_largest_cluster`). 0: off.
+    pub cluster_join_min_points: usize,
     pub sampling: Sampling,
     /// Voxel edge (metres) for `sampling = "voxel"`.
     pub voxel_m: f32,
@@ -70,6 +75,7 @@ impl Default for PrepareSettings {
             cluster_m: 0.0,
             cluster_stretch_from_m: 3.5,
             cluster_join_m: 0.1,
+            cluster_join_min_points: 10,
             sampling: Sampling::Farthest,
             voxel_m: 0.01,
             min_points: 64,

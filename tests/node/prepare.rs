@@ -483,7 +483,7 @@ fn the_largest_cluster_is_the_one_a_neighbour_search_finds() {
         }
         let radius = rng.random_range(0.02..0.15);
         let expected = largest_cluster_by_brute_force(&points, radius);
-        let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, radius, None, 0.0);
+        let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, radius, None, 0.0, 0);
         assert_eq!(points, expected, "case {case}, radius {radius}");
         assert!(removed + points.len() > 0);
     }
@@ -529,7 +529,7 @@ fn a_body_broken_by_a_gap_is_joined_but_not_what_lies_beside_it() {
         .collect();
     let kept = |join_m: f32, scene: &[[f32; 3]]| {
         let mut points = scene.to_vec();
-        keep_largest_cluster(&mut points, 0.06, None, join_m);
+        keep_largest_cluster(&mut points, 0.06, None, join_m, 0);
         points
     };
     assert_eq!(kept(0.0, &scene), torso);
@@ -541,6 +541,47 @@ fn a_body_broken_by_a_gap_is_joined_but_not_what_lies_beside_it() {
     assert_eq!(kept(0.1, &far_scene), torso);
 }
 
+/// A quadruped whose lower legs the sensor cut off (a gap of 9 cm at each knee, small pieces):
+/// with `limb_min_points` they are kept, and so is nothing else: not a speck of the floor's noise
+/// beside a foot (fewer points), a piece as low but further out than `join_m` (another object), a
+/// piece in the body's upper half (a head held apart), or a piece below the body but outside its
+/// footprint grown by `join_m`.
+#[test]
+fn legs_the_sensor_cut_off_are_kept_with_the_body_but_not_floor_specks_or_neighbours() {
+    // Body and upper legs from 0.30 to 0.80 m, lower legs from 0 to 0.21 m.
+    let mut body = grid_box([0.0, 0.0, 0.51], [0.9, 0.3, 0.81]);
+    for x in [0.0, 0.81] {
+        for y in [0.0, 0.24] {
+            body.extend(grid_box([x, y, 0.3], [x + 0.06, y + 0.06, 0.48]));
+        }
+    }
+    let lower_legs: Vec<Vec<[f32; 3]>> = [[0.0, 0.0], [0.81, 0.0], [0.0, 0.24], [0.81, 0.24]]
+        .iter()
+        .map(|&[x, y]| grid_box([x, y, 0.0], [x + 0.06, y + 0.06, 0.21]))
+        .collect();
+    let speck = grid_box([0.93, 0.0, 0.0], [0.96, 0.03, 0.03]);
+    let neighbour = grid_box([1.2, 0.0, 0.0], [1.26, 0.06, 0.21]);
+    let head = grid_box([0.3, 0.09, 0.9], [0.42, 0.21, 1.05]);
+    let min_points = 10;
+    assert!(speck.len() < min_points && lower_legs.iter().all(|l| l.len() >= min_points));
+    assert!(neighbour.len() >= min_points && head.len() >= min_points);
+    let mut scene = body.clone();
+    lower_legs.iter().for_each(|l| scene.extend(l));
+    for other in [&speck, &neighbour, &head] {
+        scene.extend(other.iter());
+    }
+    let kept = |min_points: usize| {
+        let mut points = scene.clone();
+        keep_largest_cluster(&mut points, 0.06, None, 0.1, min_points);
+        points
+    };
+    // Off, the legs are lost (this test can fail), and the 15 % rule keeps none of them.
+    assert_eq!(kept(0), body);
+    let mut with_legs = body.clone();
+    lower_legs.iter().for_each(|l| with_legs.extend(l));
+    assert_eq!(kept(min_points), with_legs);
+}
+
 #[test]
 fn the_largest_cluster_of_a_cloud_spanning_a_huge_box_is_found_without_overflow() {
     // Found by `cargo fuzz run prepare`: the cells of the occupied box overflowed u64 when
@@ -549,12 +590,15 @@ fn the_largest_cluster_of_a_cloud_spanning_a_huge_box_is_found_without_overflow(
     let cell = 0.06f32 / 3f32.sqrt();
     let far_corner = (4_194_304.0 - 0.5) * cell;
     let mut points = vec![[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.02, 0.0, 0.0], [far_corner; 3]];
-    let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, 0.06, None, 0.0);
+    let removed = gdvae_node::prepare::keep_largest_cluster(&mut points, 0.06, None, 0.0, 0);
     assert_eq!(removed, 1);
     assert_eq!(points.len(), 3);
     // Coordinates beyond what a grid of cells can index: the cloud is left as it is.
     let mut far = vec![[0.0, 0.0, 0.0], [3e38, 0.0, 0.0]];
-    assert_eq!(gdvae_node::prepare::keep_largest_cluster(&mut far, 0.06, None, 0.0), 0);
+    assert_eq!(
+        gdvae_node::prepare::keep_largest_cluster(&mut far, 0.06, None, 0.0, 0),
+        0
+    );
     assert_eq!(far.len(), 2);
 }
 
@@ -603,7 +647,7 @@ fn every_cluster_that_could_be_an_object_is_a_candidate_largest_first() {
     );
     // The largest cluster is the one keep_largest_cluster keeps.
     let mut largest = points.clone();
-    keep_largest_cluster(&mut largest, 0.1, None, 0.0);
+    keep_largest_cluster(&mut largest, 0.1, None, 0.0, 0);
     assert_eq!(largest, clusters[0]);
 }
 
@@ -686,7 +730,7 @@ fn a_far_object_broken_by_depth_noise_stays_one_cluster_with_the_radius_grown_by
     );
     let mut kept = far.clone();
     assert_eq!(
-        keep_largest_cluster(&mut kept, 0.06, stretch, 0.0),
+        keep_largest_cluster(&mut kept, 0.06, stretch, 0.0, 0),
         0,
         "keep_largest_cluster grows it too"
     );
