@@ -12,6 +12,8 @@ difference at a time to the kit's whole-surface sample:
 - `view-fps`: 4,096 such points thinned to 256 by farthest-point sampling, as the node does;
 - `camera`, `camera-noisy`: what the kit's `DepthCamera` sees from the true camera position
   (nearest point per pixel; with the stereo depth noise), thinned by farthest points;
+- `camera-edges`: the same, noisy, also dropping the pixels at a depth edge as the sim's camera
+  does (`DepthCamera.edge_threshold`);
 - `recording`: the recording's own depth cloud prepared as the node's `config/replay.toml` does,
   in Python (a check that this script reproduces `node`);
 - `recording-on-mesh`: the same, keeping only points within 5 cm of the true surface first;
@@ -57,12 +59,13 @@ from pose_probes import retrieval_ratio  # noqa: E402
 from python_reference import farthest_point_sampling as farthest_points  # noqa: E402
 
 W = 10
-STREAMS = ("whole", "view", "view-recentred", "view-fps", "camera", "camera-noisy", "recording",
+STREAMS = ("whole", "view", "view-recentred", "view-fps", "camera", "camera-noisy", "camera-edges", "recording",
            "recording-on-mesh", "recording-snapped", "recording-snapped-uncut", "node")
 RECORDED = {"recording", "recording-on-mesh", "recording-snapped", "recording-snapped-uncut"}
 CROP = np.array([-1.2, -1.2, 0.02, 1.2, 1.2, 2.5])  # config/replay.toml's
 NOISY = DepthCamera(dense=30000)  # the sim's OAK-D and the benchmark's --decimation 2
 EXACT = DepthCamera(dense=30000, disparity_sigma=0.0)
+EDGES = DepthCamera(dense=30000, edge_threshold=0.04)  # the sim's depth-edge dropout too
 SEEN = 4096  # points drawn from what the camera sees, then thinned by farthest points
 
 
@@ -98,6 +101,7 @@ def clouds_of(mesh, camera_in_object, points, rng, wanted):
         "view-fps": lambda: box_centred(farthest_points(surface(4096, facing), points, rng)),
         "camera": lambda: camera(EXACT),
         "camera-noisy": lambda: camera(NOISY),
+        "camera-edges": lambda: camera(EDGES),
     }
     return {name: make() for name, make in makers.items() if name in wanted}
 

@@ -238,6 +238,11 @@ class DepthCamera:
     decimation: int = 2
     distance_m: tuple[float, float] = (2.4, 3.6)
     dense: int = 8000
+    # The sim's depth-edge dropout (sim/src/camera.rs `edge_threshold`): a pixel whose 3x3
+    # neighbourhood holds a depth further than this share of its own from it, or nothing, is
+    # dropped, as the stereo matcher drops it; it thins limbs and cuts the thinnest at the knee.
+    # 0: off (what the shipped bundles were trained on).
+    edge_threshold: float = 0.0
 
 
 def random_rotations(count: int, rng: np.random.Generator, full: bool = False, up_axis: int = 2) -> np.ndarray:

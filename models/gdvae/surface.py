@@ -190,6 +190,8 @@ def render_views(camera: DepthCamera, surfaces: torch.Tensor, directions: torch.
     nearest = torch.index_select(buffer.view(-1), 0, flat).view(views, dense)
     around = torch.index_select(near.view(-1), 0, flat).view(views, dense)
     seen = (depth == nearest) & (depth <= around + depth * (6.0 / focal))
+    if camera.edge_threshold > 0:
+        seen &= ~torch.index_select(depth_edges(buffer, near, camera.edge_threshold).view(-1), 0, flat).view(views, dense)
     chosen = draw_seen(seen, count, generator)
     points = torch.gather(surfaces, 2, chosen[:, None].expand(-1, 3, -1)).transpose(1, 2)
     rays = points - position[:, None]
@@ -197,6 +199,15 @@ def render_views(camera: DepthCamera, surfaces: torch.Tensor, directions: torch.
     sigma_m = depth_m.pow(2) * camera.disparity_sigma / (camera.fx * camera.baseline_m)
     noise = torch.randn(depth_m.shape, generator=generator, device=device)
     return position[:, None] + rays * ((depth_m + sigma_m * noise) / depth_m)[..., None]
+
+
+def depth_edges(buffer: torch.Tensor, near: torch.Tensor, threshold: float) -> torch.Tensor:
+    """[V, W, H]: the cells of a depth buffer (empty: infinite) at a depth edge as the sim's camera
+    finds them (sim/src/camera.rs `at_depth_edge`): a neighbour in the 3x3 neighbourhood nearer or
+    further than `threshold` times the cell's depth, or empty. `near`: the buffer's
+    `neighbourhood_minimum`."""
+    far = -neighbourhood_minimum(-buffer)
+    return (far > buffer * (1 + threshold)) | (near < buffer * (1 - threshold))
 
 
 def neighbourhood_minimum(buffer: torch.Tensor) -> torch.Tensor:

@@ -83,6 +83,27 @@ def test_the_depth_camera_sees_only_the_nearest_surface_and_adds_depth_noise():
     assert (behind[..., 0] < -0.45).float().mean() > 0.05 and behind[..., 0].max() < 0.45
 
 
+def test_the_depth_edge_dropout_thins_a_thin_leg_and_spares_a_wall_but_its_rim():
+    # A wall 1 m square facing the camera at 3 m, and in front of it a post 5 cm wide: the sim's
+    # camera drops the pixels whose neighbours lie more than 4 % of their depth away (or nowhere).
+    rng = np.random.default_rng(0)
+    wall = np.c_[rng.uniform(0.0, 0.002, 60000), rng.uniform(-0.5, 0.5, (60000, 2))]
+    post = np.c_[rng.uniform(0.2, 0.25, 6000), rng.uniform(-0.025, 0.025, 6000), rng.uniform(-0.5, 0.5, 6000)]
+    dense = torch.tensor(np.concatenate([wall, post])[rng.permutation(66000)], dtype=torch.float32)[None]
+    towards = torch.tensor([[1.0, 0.0, 0.0]])
+    seen = {}
+    for threshold in (0.0, 0.04):
+        camera = DepthCamera(disparity_sigma=0.0, distance_m=(3.0, 3.0), dense=66000, edge_threshold=threshold)
+        view = depth_camera_views(camera, dense, towards, 12000, 1.0, torch.Generator().manual_seed(1))[0]
+        seen[threshold] = torch.unique(view, dim=0)
+    on_post = lambda v: (v[:, 0] > 0.1).sum().item()  # noqa: E731
+    on_wall = lambda v: (v[:, 0] < 0.1).sum().item()  # noqa: E731
+    # The post is about 3.7 pixels wide (at decimation 2): its two edge columns go, and so do the
+    # wall's pixels beside it and round its rim; the wall's middle stays.
+    assert on_post(seen[0.04]) < 0.6 * on_post(seen[0.0]) and on_post(seen[0.04]) > 0
+    assert 0.8 * on_wall(seen[0.0]) < on_wall(seen[0.04]) < on_wall(seen[0.0])
+
+
 def test_a_view_with_fewer_points_than_asked_repeats_seen_points_only():
     dense, towards, _, generator = dense_two_balls(2, seed=1)
     # About 2,700 of the 20,000 are seen: 6,000 asked are repeats of them.
