@@ -19,8 +19,9 @@ difference at a time to the kit's whole-surface sample:
 - `recording-on-mesh`: the same, keeping only points within 5 cm of the true surface first;
 - `recording-snapped`: those points moved onto the true surface (the camera's visibility, no
   depth error);
-- `recording-snapped-uncut`: the same without the largest-cluster step (every piece the camera's
-  depth edges and shadows cut off is kept; the floor is gone already);
+- `recording-on-mesh-uncut`, `recording-snapped-uncut`: those two without the largest-cluster
+  step (every piece the camera's depth edges and shadows cut off is kept; the floor is gone
+  already);
 - `node`: the node's own raw z_I from the states file.
 
 The Python streams are encoded as the node's yaw copies (`--yaw-copies`, default 4). For each it
@@ -60,8 +61,8 @@ from python_reference import farthest_point_sampling as farthest_points  # noqa:
 
 W = 10
 STREAMS = ("whole", "view", "view-recentred", "view-fps", "camera", "camera-noisy", "camera-edges", "recording",
-           "recording-on-mesh", "recording-snapped", "recording-snapped-uncut", "node")
-RECORDED = {"recording", "recording-on-mesh", "recording-snapped", "recording-snapped-uncut"}
+           "recording-on-mesh", "recording-snapped", "recording-on-mesh-uncut", "recording-snapped-uncut", "node")
+RECORDED = {"recording", "recording-on-mesh", "recording-snapped", "recording-on-mesh-uncut", "recording-snapped-uncut"}
 CROP = np.array([-1.2, -1.2, 0.02, 1.2, 1.2, 2.5])  # config/replay.toml's
 NOISY = DepthCamera(dense=30000)  # the sim's OAK-D and the benchmark's --decimation 2
 EXACT = DepthCamera(dense=30000, disparity_sigma=0.0)
@@ -291,6 +292,9 @@ def main():
                     made["recording-on-mesh"] = as_the_node_prepares(cloud, t, rng, points, surface)
                 if "recording-snapped" in streams:
                     made["recording-snapped"] = as_the_node_prepares(cloud, t, rng, points, surface, snap=True)
+                if "recording-on-mesh-uncut" in streams:
+                    made["recording-on-mesh-uncut"] = as_the_node_prepares(cloud, t, rng, points, surface,
+                                                                           cluster=False)
                 if "recording-snapped-uncut" in streams:
                     made["recording-snapped-uncut"] = as_the_node_prepares(cloud, t, rng, points, surface, snap=True,
                                                                            cluster=False)
