@@ -432,6 +432,17 @@ pub struct PoseRetrieval {
     pub code_ratio: Option<f64>,
     /// The same with the nearest true pose: the best any code can do here.
     pub truth_floor: Option<f64>,
+    /// The same per family, by name (a family's code can read the pose while another's cannot:
+    /// a quadruped's thin legs, a biped's arms).
+    pub families: std::collections::BTreeMap<String, FamilyPoseRetrieval>,
+}
+
+/// [`PoseRetrieval`]'s figures for one family.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct FamilyPoseRetrieval {
+    pub frames: usize,
+    pub code_ratio: Option<f64>,
+    pub truth_floor: Option<f64>,
 }
 
 /// At most this many frames per family are searched (evenly strided): consecutive frames of a
@@ -443,7 +454,9 @@ pub fn pose_retrieval(frames: &[PoseFrame]) -> PoseRetrieval {
     families.sort_unstable();
     families.dedup();
     let (mut code_ratios, mut truth_ratios) = (Vec::new(), Vec::new());
+    let mut by_family = std::collections::BTreeMap::new();
     for family in families {
+        let (mut family_codes, mut family_truths) = (Vec::new(), Vec::new());
         let all: Vec<&PoseFrame> = frames
             .iter()
             .filter(|f| f.family == family && !f.theta.is_empty() && !f.code.is_empty())
@@ -468,14 +481,25 @@ pub fn pose_retrieval(frames: &[PoseFrame]) -> PoseRetrieval {
             let Some(median) = quantile(&sorted(truth_distances), 0.5).filter(|m| *m > 0.0) else {
                 continue;
             };
-            code_ratios.push(nearest_code.1 / median);
-            truth_ratios.push(nearest_truth / median);
+            family_codes.push(nearest_code.1 / median);
+            family_truths.push(nearest_truth / median);
+        }
+        if !family_codes.is_empty() {
+            code_ratios.extend_from_slice(&family_codes);
+            truth_ratios.extend_from_slice(&family_truths);
+            let figures = FamilyPoseRetrieval {
+                frames: family_codes.len(),
+                code_ratio: quantile(&sorted(family_codes), 0.5),
+                truth_floor: quantile(&sorted(family_truths), 0.5),
+            };
+            by_family.insert(family.to_string(), figures);
         }
     }
     PoseRetrieval {
         frames: code_ratios.len(),
         code_ratio: quantile(&sorted(code_ratios), 0.5),
         truth_floor: quantile(&sorted(truth_ratios), 0.5),
+        families: by_family,
     }
 }
 

@@ -155,12 +155,18 @@ pub fn print(report: &Report, summary: &RunSummary) {
     }
     for (label, r) in [("raw", &o.pose_retrieval), ("published", &o.pose_retrieval_published)] {
         if r.frames > 0 {
+            let families: Vec<String> = r
+                .families
+                .iter()
+                .map(|(name, f)| format!("{name} {}", fmt_opt(f.code_ratio, 1.0, 2)))
+                .collect();
             println!(
                 "  pose retrieval by z_E ({label}): the nearest code among the family's other subjects is {} of the \
-                 median true-pose distance away in pose (1: z_E says nothing of the pose; the nearest true pose: {}; {} frames)",
+                 median true-pose distance away in pose (1: z_E says nothing of the pose; the nearest true pose: {}; {} frames; {})",
                 fmt_opt(r.code_ratio, 1.0, 2),
                 fmt_opt(r.truth_floor, 1.0, 2),
                 r.frames,
+                families.join(", "),
             );
         }
     }

@@ -398,6 +398,22 @@ fn pose_retrieval_finds_the_pose_on_other_subjects_only_with_a_code_that_carries
         .filter(|f| f.subject == "s0")
         .collect();
     assert_eq!(pose_retrieval(&alone).frames, 0);
+    // Per family: a family whose code is the pose beside one whose code names the subject; each
+    // is scored on its own, and the whole is the median over both families' frames.
+    let mut mixed = pose_frames(|_, angle, _| vec![angle.sin(), angle.cos()]);
+    mixed.extend(
+        pose_frames(|subject, _, _| vec![subject as f32])
+            .into_iter()
+            .map(|f| PoseFrame {
+                family: "biped".into(),
+                ..f
+            }),
+    );
+    let both = pose_retrieval(&mixed);
+    assert_eq!(both.families.len(), 2);
+    assert_eq!(both.families["quadruped"].code_ratio, exact.code_ratio);
+    assert!(both.families["biped"].code_ratio.unwrap() > 0.6, "{both:?}");
+    assert_eq!((both.families["quadruped"].frames, both.frames), (240, 480));
     let blind: Vec<PoseFrame> = pose_frames(|_, a, _| vec![a])
         .into_iter()
         .map(|f| PoseFrame { theta: Vec::new(), ..f })
