@@ -21,6 +21,7 @@ use gdvae_node::cloud::{Frame, PointCloud, Unit};
 use gdvae_node::config::Config;
 use gdvae_node::cpu::ThreadLap;
 use gdvae_node::prepare::{Preparer, STEPS};
+use gdvae_node::sources::recording::mcap::check_chunk_header;
 use gdvae_node::sources::recording::{for_each_message, recording_files};
 use gdvae_node::sources::ros2::decode_point_cloud2;
 
@@ -172,17 +173,14 @@ fn decompress_chunks(bytes: &[u8]) -> anyhow::Result<usize> {
                 at += n;
             }
             LinearReadEvent::Record { data, opcode } if opcode == OP_CHUNK => {
-                // start and end time, uncompressed size, CRC, compression (a string), records.
-                let field =
-                    |at: usize, n: usize| data.get(at..at + n).ok_or_else(|| anyhow::anyhow!("a chunk cut short"));
-                let size = u64::from_le_bytes(field(16, 8)?.try_into()?) as usize;
-                let name_len = u32::from_le_bytes(field(28, 4)?.try_into()?) as usize;
-                let compression = field(32, name_len)?;
-                let records_len = u64::from_le_bytes(field(32 + name_len, 8)?.try_into()?) as usize;
-                let records = field(40 + name_len, records_len)?;
-                if compression == b"zstd" {
+                let (size, compression, records_len, at) =
+                    check_chunk_header(data).map_err(|e| anyhow::anyhow!("a chunk: {e}"))?;
+                let records = data
+                    .get(at..at + records_len as usize)
+                    .ok_or_else(|| anyhow::anyhow!("a chunk cut short"))?;
+                if compression == "zstd" {
                     out.clear();
-                    out.reserve(size);
+                    out.reserve(size as usize);
                     zstd.decompress_to_buffer(records, &mut out)?;
                     chunks += 1;
                 }

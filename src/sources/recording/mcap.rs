@@ -134,7 +134,7 @@ fn note_channel(
 /// A chunk's header (start and end time, uncompressed size and CRC, compression, records
 /// length): its sizes within the limits and a compression the reader knows. Returns the
 /// uncompressed size, the compression, the records length and where the records start.
-fn check_chunk_header(content: &[u8]) -> Result<(u64, String, u64, usize), String> {
+pub fn check_chunk_header(content: &[u8]) -> Result<(u64, String, u64, usize), String> {
     let mut at = 16; // message start and end times
     let uncompressed = read_u64(content, &mut at).ok_or("header cut short")?;
     at += 4; // uncompressed CRC
