@@ -332,8 +332,7 @@ pub fn write_dataset(
         .map(|&(family, index, split)| {
             let subject_name = subject_id(family, index);
             let subject_seed = seeds::derive(spec.seed, &[family as u64, index as u64]);
-            let beta = family.sample_beta(&mut seeds::rng(subject_seed));
-            let subject = Subject::with_vertex_count(family, beta, spec.target_vertices).map_err(|source| {
+            let subject = Subject::draw(family, subject_seed, spec.target_vertices).map_err(|source| {
                 DatasetError::Subject {
                     subject: subject_name.clone(),
                     source,

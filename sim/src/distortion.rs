@@ -7,7 +7,7 @@
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::family::{Family, PoseMode, Subject, SubjectError};
+use crate::family::{Family, PoseMode, Subject, SubjectError, DEFAULT_VERTEX_COUNT};
 use crate::mesh::{edge_length_distortion, percentile};
 use crate::seeds;
 
@@ -36,8 +36,8 @@ pub fn measure_distortion(
     let per_subject: Result<Vec<Vec<f64>>, SubjectError> = (0..subjects)
         .into_par_iter()
         .map(|index| {
-            let beta = family.sample_beta(&mut seeds::rng(seeds::derive(seed, &[family as u64, index as u64])));
-            let subject = Subject::new(family, beta)?;
+            let subject_seed = seeds::derive(seed, &[family as u64, index as u64]);
+            let subject = Subject::draw(family, subject_seed, DEFAULT_VERTEX_COUNT)?;
             let mut distortions = Vec::new();
             for pose in 0..poses_per_subject {
                 let mut rng = seeds::rng(seeds::derive(seed, &[family as u64, index as u64, pose as u64]));

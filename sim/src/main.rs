@@ -681,12 +681,11 @@ fn run(command: Command) -> Result<()> {
             out,
         } => {
             let family = Family::from(family);
-            let beta = if mean_shape {
-                family.mean_beta()
+            let subject = if mean_shape {
+                Subject::new(family, family.mean_beta())?
             } else {
-                family.sample_beta(&mut seeds::rng(subject_seed))
+                Subject::draw(family, subject_seed, DEFAULT_VERTEX_COUNT)?
             };
-            let subject = Subject::new(family, beta)?;
             let theta = subject.sample_theta(pose.into(), &mut seeds::rng(pose_seed));
             let mesh = subject.pose(&theta)?;
             let mut file = std::io::BufWriter::new(

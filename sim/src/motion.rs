@@ -21,7 +21,7 @@ use rand::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::family::{Family, PoseMode, Subject, SubjectError};
+use crate::family::{Family, PoseMode, Subject, SubjectError, DEFAULT_VERTEX_COUNT};
 use crate::mesh::Mesh;
 use crate::seeds;
 use crate::skeleton::Skeleton;
@@ -152,8 +152,7 @@ impl Motion {
             .map(|index| {
                 let family = spec.families[index % spec.families.len()];
                 let seed = seeds::derive(spec.seed, &[1, index as u64]);
-                let beta = family.sample_beta(&mut seeds::rng(seed));
-                let subject = Subject::new(family, beta)?;
+                let subject = Subject::draw(family, seed, DEFAULT_VERTEX_COUNT)?;
                 Ok((format!("{}-{:08x}", family.name(), seed as u32), subject))
             })
             .collect::<Result<Vec<_>, SubjectError>>()?;

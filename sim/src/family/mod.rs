@@ -232,6 +232,10 @@ const CELLS_PER_MIN_RADIUS: [f64; 3] = [1.4, 2.0, 3.0];
 const SKIN_FALLOFF_PER_RADIUS: f64 = 0.4;
 const SKIN_DIFFUSION_ROUNDS: usize = 4;
 
+/// Shapes drawn for one seed at most: a drawn beta whose body does not mesh to one closed surface
+/// (a limb grown into the torso makes a handle) is drawn again from the same generator.
+const MAX_SHAPE_DRAWS: usize = 8;
+
 /// One individual: a beta, its rest mesh and skinning weights. Built once, posed many times.
 pub struct Subject {
     pub family: Family,
@@ -246,6 +250,21 @@ pub struct Subject {
 impl Subject {
     pub fn new(family: Family, beta: Vec<f64>) -> Result<Self, SubjectError> {
         Self::with_vertex_count(family, beta, DEFAULT_VERTEX_COUNT)
+    }
+
+    /// A random subject of `family` from the generator seeded with `seed`: its first drawn shape,
+    /// or, where that does not mesh to one closed surface (about 1 draw in 300), the next one
+    /// drawn, so that every seed gives a subject and a seed's subject never changes.
+    pub fn draw(family: Family, seed: u64, target_vertices: usize) -> Result<Self, SubjectError> {
+        let mut rng = crate::seeds::rng(seed);
+        let mut last = None;
+        for _ in 0..MAX_SHAPE_DRAWS {
+            match Self::with_vertex_count(family, family.sample_beta(&mut rng), target_vertices) {
+                Err(SubjectError::InvalidMesh(defect)) => last = Some(defect),
+                outcome => return outcome,
+            }
+        }
+        Err(SubjectError::InvalidMesh(last.expect("at least one draw")))
     }
 
     pub fn with_vertex_count(family: Family, beta: Vec<f64>, target_vertices: usize) -> Result<Self, SubjectError> {

@@ -163,3 +163,27 @@ fn articulation_stays_close_to_isometric() {
         assert!(rest.max < 1e-9, "rest pose is exactly isometric");
     }
 }
+
+#[test]
+fn a_drawn_shape_that_does_not_mesh_is_drawn_again_and_a_good_first_draw_is_kept() {
+    // The second biped of `sim record --seed 60401` (bench/tracking.sh fit-4): its first drawn
+    // shape meshes to a surface with a handle, which stopped the whole recording.
+    let seed = seeds::derive(60401, &[1, 1]);
+    let first = Family::Biped.sample_beta(&mut seeds::rng(seed));
+    assert!(
+        matches!(
+            Subject::new(Family::Biped, first.clone()),
+            Err(SubjectError::InvalidMesh(_))
+        ),
+        "this seed no longer exercises a redraw"
+    );
+    let drawn = Subject::draw(Family::Biped, seed, 4000).expect("a second draw meshes");
+    assert_ne!(drawn.beta, first);
+    drawn.rest_mesh.validate().expect("a closed surface");
+
+    // A seed whose first shape meshes keeps it: recordings and datasets made before are unchanged.
+    let seed = seeds::derive(60401, &[1, 0]);
+    let first = Family::Biped.sample_beta(&mut seeds::rng(seed));
+    Subject::new(Family::Biped, first.clone()).expect("the first draw meshes");
+    assert_eq!(Subject::draw(Family::Biped, seed, 4000).unwrap().beta, first);
+}
