@@ -23,6 +23,10 @@
 # 20101-20143 and 30101-30123; each N after, 100 more): an idle set holds few recordings, and one
 # recording whose track goes astray moves its p90 by many degrees.
 #
+# `fit-N` (N = 1, 2, ...; seeds 60000 + 100 N onwards) are the 12 scenarios again, for fitting what
+# is fitted on the node's own clouds (the bundle's identity projection, models/README "Identity
+# projection"); never reported as benchmark figures.
+#
 # `stand-tune`, `stand-holdout` and `stand-final` are the 12 scenarios with every idle subject
 # standing instead (`sim record --motion stand`: idle's place and turn, a walking subject's small
 # pose drift; seeds 40000-40011, 40100-40111, 40200-40211): beside the walks, what the pose code
@@ -37,7 +41,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SET=${1:?usage: bench/tracking.sh [dense-]tune|holdout|final|extra-N|idle-tune|idle-holdout|idle-extra-N|still-tune|still-holdout|still-extra-N|stand-tune|stand-holdout|stand-final [OUT_DIR] [-- evaluate options]}
+SET=${1:?usage: bench/tracking.sh [dense-]tune|holdout|final|extra-N|idle-tune|idle-holdout|idle-extra-N|still-tune|still-holdout|still-extra-N|stand-tune|stand-holdout|stand-final|fit-N [OUT_DIR] [-- evaluate options]}
 shift
 OUT=${BENCH_DIR:-/work/data/bench-tracking}
 if [[ $# -gt 0 && $1 != "--" ]]; then OUT=$1; shift; fi
@@ -64,7 +68,8 @@ case $KIND in
   holdout) BASE=200 ;;
   final) BASE=300 ;;
   extra-[1-9]|extra-[1-9][0-9]) BASE=$((1000 + 100 * ${KIND#extra-})) ;;
-  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N, each also as dense-...; idle-tune, idle-holdout, idle-extra-N, still-tune, still-holdout, still-extra-N, stand-tune, stand-holdout, stand-final)" >&2; exit 2 ;;
+  fit-[1-9]|fit-[1-9][0-9]) BASE=$((60000 + 100 * ${KIND#fit-})) ;;
+  *) echo "bench/tracking.sh: unknown set '$SET' (tune, holdout, final or extra-N, each also as dense-...; idle-tune, idle-holdout, idle-extra-N, still-tune, still-holdout, still-extra-N, stand-tune, stand-holdout, stand-final, fit-N)" >&2; exit 2 ;;
 esac
 BASE=$((BASE + OFFSET))
 
