@@ -23,9 +23,9 @@
 # 20101-20143 and 30101-30123; each N after, 100 more): an idle set holds few recordings, and one
 # recording whose track goes astray moves its p90 by many degrees.
 #
-# `fit-N` (N = 1, 2, ...; seeds 60000 + 100 N onwards) are the 12 scenarios again, for fitting what
-# is fitted on the node's own clouds (the bundle's identity projection, models/README "Identity
-# projection"); never reported as benchmark figures.
+# `fit-N` (N = 1, 2, ...; seeds 60000 + 100 N onwards) are the 12 scenarios again, for what is
+# fitted on the node's own clouds (bench/change_detector.py's discriminant; docs/tracking.md "The
+# change detector replayed"); never reported as benchmark figures.
 #
 # `stand-tune`, `stand-holdout` and `stand-final` are the 12 scenarios with every idle subject
 # standing instead (`sim record --motion stand`: idle's place and turn, a walking subject's small

@@ -1,0 +1,286 @@
+"""The node's identity-change detector replayed offline, to compare detectors in seconds.
+
+Reads `gdvae-node evaluate --states` files (every published state with its ground truth) and runs a
+replica of the shape filter of src/track/shape.rs (precision-weighted fusion, the gate, the CUSUM
+and its held frames) over each stream's raw z_I, first checking the replica against the node: every
+frame's distance must be the one the node published, or the script stops with an error. Then, for
+each detector variant, it sweeps the CUSUM's threshold h and drift k on the `--choice` files,
+chooses the pair that finds the most true changes with at most `--budget` false ones per 1,000
+frames, and reports that pair on the `--report` files (which nothing is chosen on):
+
+- `shipped`: the node's detector, the encoder's z_I variances as the node scales them;
+- `view`: the same with a frame's variances widened up to `--view-widen` times as the subject is
+  seen end-on (within 30 degrees of the line of sight, by the node's filtered heading and centre
+  and the recording's camera position: what the node could compute itself);
+- `discriminant`: z_I projected onto its `--directions` most discriminant directions for subjects
+  of one family, whitened by the within-subject scatter, fitted on the `--fit` files' node clouds
+  (each frame's variance 1 in that space; `--ridge` shrinks the within-subject scatter towards its
+  mean variance). The fit files must be apart from both other sets (bench/tracking.sh fit-N).
+
+    .venv/bin/python bench/change_detector.py --choice A-states.jsonl,... --report C-states.jsonl,... \
+        [--fit F-states.jsonl,...] [--variants shipped,view,discriminant] [--budget 0.6] [--front]
+
+`--front` also prints each variant's found/false trade-off over its whole grid on the report files
+(a measurement, not a choice). The node's own settings (`shape_gate`, `switch_frames`,
+`min_shape_variance`) are config/default.toml's; a change is found when reported within 10 frames
+of the true one (`gdvae-node evaluate`'s rule).
+"""
+import argparse
+import itertools
+import json
+import math
+import sys
+
+import numpy as np
+
+GATE, SWITCH, MIN_VARIANCE, MAX_HELD, MATURE, TOLERANCE = 2.0, 5, 4e-4, 300, 30, 10
+
+
+class ShapeFilter:
+    """src/track/shape.rs with the CUSUM detector, on variances already scaled."""
+
+    def __init__(self, threshold, drift):
+        self.threshold, self.drift = threshold, drift
+        self.frames, self.statistic, self.held = 0, 0.0, []
+
+    def restart(self, frames):
+        self.mean = np.zeros(len(frames[0][0]))
+        self.precision = np.zeros(len(frames[0][0]))
+        self.frames = 0
+        for mean, variance in frames:
+            self.fuse(mean, variance)
+
+    def fuse(self, mean, variance):
+        precision = 1.0 / np.maximum(variance, 1e-12)
+        total = self.precision + precision
+        self.mean = (self.mean * self.precision + mean * precision) / total
+        self.precision = np.minimum(total, 1.0 / MIN_VARIANCE)
+        self.frames += 1
+
+    def update(self, mean, variance):
+        """(distance, whether this frame completed a change)."""
+        if self.frames == 0:
+            self.restart([(mean, variance)])
+            return 0.0, False
+        distance = float(np.mean((mean - self.mean) ** 2 / (variance + 1.0 / self.precision)))
+        inlier = distance <= GATE
+        clip = self.drift + self.threshold / SWITCH
+        self.statistic = max(0.0, self.statistic + min(distance, clip) - self.drift)
+        if self.statistic <= 0.0:
+            for held_mean, held_variance, held_inlier, fused in self.held:
+                if held_inlier and not fused:
+                    self.fuse(held_mean, held_variance)
+            self.held = []
+            if inlier:
+                self.fuse(mean, variance)
+            return distance, False
+        fused = inlier and self.frames < MATURE
+        if fused:
+            self.fuse(mean, variance)
+        self.held.append((mean, variance, inlier, fused))
+        if len(self.held) > MAX_HELD:
+            held_mean, held_variance, held_inlier, held_fused = self.held.pop(0)
+            if held_inlier and not held_fused:
+                self.fuse(held_mean, held_variance)
+        if self.statistic >= self.threshold and len(self.held) >= SWITCH:
+            self.restart([(m, v) for m, v, _, _ in self.held])
+            self.held, self.statistic = [], 0.0
+            return distance, True
+        return distance, False
+
+
+def end_on_degrees(state, truth):
+    """Angle between the node's filtered heading and its line of sight to the object, folded to
+    0 (end-on) .. 90 (side-on); the camera position is the recording's (the node's sensor pose)."""
+    camera = truth["world_from_camera"]["translation"]
+    centre = state["centre_m"]
+    sight = math.atan2(centre[1] - camera[1], centre[0] - camera[0])
+    relative = abs((state["filtered"]["yaw"] - sight + math.pi) % (2 * math.pi) - math.pi)
+    return math.degrees(min(relative, math.pi - relative))
+
+
+def load(path):
+    """Per stream: frames (raw z_I mean, scaled variance, end-on angle, truth frame, subject,
+    family, the node's distance) and the true change frames."""
+    streams = {}
+    for line in open(path):
+        row = json.loads(line)
+        streams.setdefault(row["state"]["stream"], []).append(row)
+    out = []
+    for stream, rows in streams.items():
+        rows.sort(key=lambda r: r["state"]["sequence"])
+        if any(r["truth"] is None for r in rows):
+            sys.exit(f"{path}: stream '{stream}' has states without ground truth (a sim recording's states are needed)")
+        first = rows[0]["state"]
+        # The node's variance scale (bundle calibration x shape_variance_scale), from the first
+        # frame, whose fused variance is its own scaled variance.
+        scale = first["shape"]["z_i_var"][0] / first["raw"]["z_i_var"][0]
+        frames = [
+            dict(
+                mean=np.array(r["state"]["raw"]["z_i"]),
+                variance=np.array(r["state"]["raw"]["z_i_var"]) * scale,
+                end_on=end_on_degrees(r["state"], r["truth"]),
+                frame=r["truth"]["frame"],
+                subject=r["truth"]["subject"],
+                family=r["truth"]["family"],
+                node_distance=r["state"]["shape"]["distance"],
+            )
+            for r in rows
+        ]
+        switches = [b["frame"] for a, b in zip(frames, frames[1:]) if a["subject"] != b["subject"]]
+        out.append((f"{path}:{stream}", frames, switches))
+    return out
+
+
+def check_replica(streams, threshold, drift):
+    """The replica at the node's settings must give every frame the distance the node published."""
+    for name, frames, _ in streams:
+        detector = ShapeFilter(threshold, drift)
+        for f in frames:
+            distance, _ = detector.update(f["mean"], f["variance"])
+            if abs(distance - f["node_distance"]) > 1e-3 * max(1.0, distance):
+                sys.exit(
+                    f"{name} frame {f['frame']}: the replica's distance {distance:.5f} is not the node's "
+                    f"{f['node_distance']:.5f}: src/track/shape.rs changed, or the states were made with "
+                    f"other [track] settings than --node-threshold/--node-drift"
+                )
+
+
+def count(streams, threshold, drift, code):
+    """(found, true changes, false, frames) of the detector on `code(frame) -> (mean, variance)`."""
+    found = true = false = frames_seen = 0
+    for _, frames, switches in streams:
+        detector = ShapeFilter(threshold, drift)
+        reported = [f["frame"] for f in frames if detector.update(*code(f))[1]]
+        used = [False] * len(reported)
+        for k, t in enumerate(switches):
+            end = min(t + TOLERANCE, (switches[k + 1] - 1) if k + 1 < len(switches) else t + TOLERANCE)
+            for j, r in enumerate(reported):
+                if not used[j] and t <= r <= end:
+                    used[j] = True
+                    found += 1
+                    break
+        true += len(switches)
+        false += used.count(False)
+        frames_seen += len(frames)
+    return found, true, false, frames_seen
+
+
+def discriminant(streams, directions, ridge):
+    """Rows: the `directions` most discriminant directions for same-family subjects, scaled so
+    that the within-subject scatter is 1 along each."""
+    by_subject = {}
+    for _, frames, _ in streams:
+        for f in frames:
+            by_subject.setdefault((f["subject"], f["family"]), []).append(f["mean"])
+    width = len(next(iter(by_subject.values()))[0])
+    within, n, means = np.zeros((width, width)), 0, {}
+    for key, codes in by_subject.items():
+        codes = np.array(codes)
+        means[key] = codes.mean(0)
+        within += (codes - means[key]).T @ (codes - means[key])
+        n += len(codes)
+    within /= n
+    between, families = np.zeros((width, width)), 0
+    for family in {f for _, f in means}:
+        centred = np.array([m for (_, f), m in means.items() if f == family])
+        centred -= centred.mean(0)
+        between += centred.T @ centred / len(centred)
+        families += 1
+    between /= families
+    within += ridge * np.trace(within) / width * np.eye(width)
+    inverse_root = np.linalg.inv(np.linalg.cholesky(within))
+    values, vectors = np.linalg.eigh(inverse_root @ between @ inverse_root.T)
+    order = np.argsort(values)[::-1][:directions]
+    return vectors[:, order].T @ inverse_root, len(by_subject), values[order]
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--choice", required=True, help="states files the thresholds are chosen on (comma-separated)")
+    parser.add_argument("--report", required=True, help="states files the choice is reported on (comma-separated)")
+    parser.add_argument("--fit", help="states files the discriminant is fitted on (comma-separated)")
+    parser.add_argument("--variants", default="shipped,view,discriminant")
+    parser.add_argument("--budget", type=float, default=0.6, help="false changes per 1,000 frames allowed on --choice")
+    parser.add_argument("--view-widen", type=float, default=4.0)
+    parser.add_argument("--directions", type=int, default=5)
+    parser.add_argument("--ridge", type=float, default=0.3)
+    parser.add_argument("--node-threshold", type=float, default=10.0, help="the [track] cusum_threshold the states were made with")
+    parser.add_argument("--node-drift", type=float, default=3.0, help="the [track] cusum_drift the states were made with")
+    parser.add_argument("--front", action="store_true", help="also print each variant's trade-off on --report")
+    args = parser.parse_args()
+
+    choice = {p: load(p) for p in args.choice.split(",")}
+    report = {p: load(p) for p in args.report.split(",")}
+    for streams in [*choice.values(), *report.values()]:
+        check_replica(streams, args.node_threshold, args.node_drift)
+    print(f"replica checked against the node's distances on {len(choice) + len(report)} files")
+
+    variants = {}
+    plain_grid = list(itertools.product([10, 6, 4, 3], [3.5, 3.0, 2.5, 2.25, 2.0, 1.75]))
+    names = args.variants.split(",")
+    if "shipped" in names:
+        variants["shipped"] = (lambda f: (f["mean"], f["variance"]), plain_grid)
+    if "view" in names:
+        widen = args.view_widen
+
+        def view(f):
+            return f["mean"], f["variance"] * (1.0 + (widen - 1.0) * max(0.0, (30.0 - f["end_on"]) / 30.0))
+
+        variants[f"view (x{widen:g} end-on)"] = (view, plain_grid)
+    if "discriminant" in names:
+        if not args.fit:
+            sys.exit("the discriminant variant needs --fit states files (apart from --choice and --report)")
+        fit = [s for p in args.fit.split(",") for s in load(p)]
+        rows, subjects, values = discriminant(fit, args.directions, args.ridge)
+        print(f"discriminant: {subjects} subjects fitted; between/within ratio along its directions {np.round(values, 2)}")
+        unit = np.ones(len(rows))
+        variants[f"discriminant ({args.directions} directions, ridge {args.ridge:g})"] = (
+            lambda f: (rows @ f["mean"], unit),
+            list(itertools.product([20, 10, 6], [12.0, 9.0, 8.0, 7.0, 6.0, 5.0, 4.0])),
+        )
+
+    choice_streams = [s for streams in choice.values() for s in streams]
+    report_streams = [s for streams in report.values() for s in streams]
+    for label, streams in [("--choice", choice_streams), ("--report", report_streams)]:
+        found, true, false, frames = count(streams, args.node_threshold, args.node_drift, lambda f: (f["mean"], f["variance"]))
+        print(
+            f"the node's own settings (threshold {args.node_threshold:g}, drift {args.node_drift:g}) on {label}: "
+            f"{found}/{true} found, {false} false in {frames} frames = {1000 * false / frames:.2f} per 1,000"
+        )
+    for name, (code, grid) in variants.items():
+        best = None
+        for threshold, drift in grid:
+            found, true, false, frames = count(choice_streams, threshold, drift, code)
+            if 1000 * false / frames <= args.budget and (best is None or (found, -false) > best[0]):
+                best = ((found, -false), threshold, drift, f"{found}/{true} found, {false} false in {frames} frames")
+        if best is None:
+            print(f"{name}: nothing on the grid keeps within {args.budget} false per 1,000 frames on --choice")
+            continue
+        _, threshold, drift, on_choice = best
+        print(f"\n{name}: chosen cusum_threshold {threshold}, cusum_drift {drift} ({on_choice} on --choice)")
+        total = np.zeros(4, dtype=int)
+        for path, streams in report.items():
+            figures = count(streams, threshold, drift, code)
+            total += figures
+            print(f"  {path}: {figures[0]}/{figures[1]} found, {figures[2]} false")
+        print(
+            f"  report total: {total[0]}/{total[1]} found, {total[2]} false in {total[3]} frames "
+            f"= {1000 * total[2] / total[3]:.2f} per 1,000"
+        )
+        if args.front:
+            points = []
+            for h, k in grid:
+                found, _, false, _ = count(report_streams, h, k, code)
+                points.append((false, -found, h, k))
+            points.sort()
+            front, most = [], -1
+            for false, minus_found, h, k in points:
+                if -minus_found > most:
+                    most = -minus_found
+                    front.append(f"{most} found at {false} false (h {h:g}, k {k:g})")
+            print("  report trade-off: " + "; ".join(front))
+
+
+if __name__ == "__main__":
+    main()
