@@ -12,13 +12,21 @@ frames, and reports that pair on the `--report` files (which nothing is chosen o
 - `view`: the same with a frame's variances widened up to `--view-widen` times as the subject is
   seen end-on (within 30 degrees of the line of sight, by the node's filtered heading and centre
   and the recording's camera position: what the node could compute itself);
-- `discriminant`: z_I projected onto its `--directions` most discriminant directions for subjects
-  of one family, whitened by the within-subject scatter, fitted on the `--fit` files' node clouds
-  (each frame's variance 1 in that space; `--ridge` shrinks the within-subject scatter towards its
-  mean variance). The fit files must be apart from both other sets (bench/tracking.sh fit-N).
+- `discriminant`: the encoder's x_c (`--fit-input x_c`, what the node's identity projection reads;
+  `python -m gdvae fit-identity` fits the same) or z_I projected onto its `--directions` most
+  discriminant directions for subjects of one family, whitened by the within-subject scatter,
+  fitted on the `--fit` files' node clouds (each frame's variance 1 in that space; `--ridge`
+  shrinks the within-subject scatter towards its mean variance). The fit files must be apart from
+  both other sets (bench/tracking.sh fit-N). `--directions` and `--ridge` take comma-separated
+  lists: each pair is a variant, and the one that finds the most on `--choice` (then the fewest
+  false) is named.
 
     .venv/bin/python bench/change_detector.py --choice A-states.jsonl,... --report C-states.jsonl,... \
-        [--fit F-states.jsonl,...] [--variants shipped,view,discriminant] [--budget 0.6] [--front]
+        [--fit F-states.jsonl,...] [--fit-input x_c] [--directions 5] [--ridge 0.03] \
+        [--variants shipped,view,discriminant] [--budget 0.6] [--front]
+
+The states must be written with identity changes on z_I (`--set use_identity_projection=false`
+under a bundle with an identity projection), which the replica checks.
 
 `--front` also prints each variant's found/false trade-off over its whole grid on the report files
 (a measurement, not a choice). The node's own settings (`shape_gate`, `switch_frames`,
@@ -124,6 +132,7 @@ def load(path):
                 subject=r["truth"]["subject"],
                 family=r["truth"]["family"],
                 node_distance=r["state"]["shape"]["distance"],
+                x_c=np.array(r["x_c"]) if "x_c" in r else None,
             )
             for r in rows
         ]
@@ -166,13 +175,13 @@ def count(streams, threshold, drift, code):
     return found, true, false, frames_seen
 
 
-def discriminant(streams, directions, ridge):
-    """Rows: the `directions` most discriminant directions for same-family subjects, scaled so
-    that the within-subject scatter is 1 along each."""
+def discriminant(streams, directions, ridge, key):
+    """Rows: the `directions` most discriminant directions of frame[key] for same-family subjects,
+    scaled so that the within-subject scatter is 1 along each (models/gdvae/identity.py's fit)."""
     by_subject = {}
     for _, frames, _ in streams:
         for f in frames:
-            by_subject.setdefault((f["subject"], f["family"]), []).append(f["mean"])
+            by_subject.setdefault((f["subject"], f["family"]), []).append(f[key])
     width = len(next(iter(by_subject.values()))[0])
     within, n, means = np.zeros((width, width)), 0, {}
     for key, codes in by_subject.items():
@@ -203,8 +212,9 @@ def main():
     parser.add_argument("--variants", default="shipped,view,discriminant")
     parser.add_argument("--budget", type=float, default=0.6, help="false changes per 1,000 frames allowed on --choice")
     parser.add_argument("--view-widen", type=float, default=4.0)
-    parser.add_argument("--directions", type=int, default=5)
-    parser.add_argument("--ridge", type=float, default=0.3)
+    parser.add_argument("--fit-input", default="x_c", choices=["x_c", "z_I"], help="what the discriminant projects")
+    parser.add_argument("--directions", default="5", help="comma-separated")
+    parser.add_argument("--ridge", default="0.03", help="comma-separated")
     parser.add_argument("--node-threshold", type=float, default=10.0, help="the [track] cusum_threshold the states were made with")
     parser.add_argument("--node-drift", type=float, default=3.0, help="the [track] cusum_drift the states were made with")
     parser.add_argument("--front", action="store_true", help="also print each variant's trade-off on --report")
@@ -231,14 +241,21 @@ def main():
     if "discriminant" in names:
         if not args.fit:
             sys.exit("the discriminant variant needs --fit states files (apart from --choice and --report)")
+        key = "x_c" if args.fit_input == "x_c" else "mean"
         fit = [s for p in args.fit.split(",") for s in load(p)]
-        rows, subjects, values = discriminant(fit, args.directions, args.ridge)
-        print(f"discriminant: {subjects} subjects fitted; between/within ratio along its directions {np.round(values, 2)}")
-        unit = np.ones(len(rows))
-        variants[f"discriminant ({args.directions} directions, ridge {args.ridge:g})"] = (
-            lambda f: (rows @ f["mean"], unit),
-            list(itertools.product([20, 10, 6], [12.0, 9.0, 8.0, 7.0, 6.0, 5.0, 4.0])),
-        )
+        if any(f[key] is None for _, frames, _ in fit for f in frames):
+            sys.exit("--fit states without x_c: write them with a node that adds it (gdvae-node evaluate --states)")
+        for directions, ridge in itertools.product(
+            [int(d) for d in args.directions.split(",")], [float(r) for r in args.ridge.split(",")]
+        ):
+            rows, subjects, values = discriminant(fit, directions, ridge, key)
+            name = f"discriminant of {args.fit_input} ({directions} directions, ridge {ridge:g})"
+            print(f"{name}: {subjects} subjects fitted; between/within ratio along its directions {np.round(values, 2)}")
+            unit = np.ones(len(rows))
+            variants[name] = (
+                lambda f, rows=rows, unit=unit: (rows @ f[key], unit),
+                list(itertools.product([20, 10, 6], [24.0, 16.0, 12.0, 9.0, 8.0, 7.0, 6.0, 5.0, 4.0, 3.0])),
+            )
 
     choice_streams = [s for streams in choice.values() for s in streams]
     report_streams = [s for streams in report.values() for s in streams]
@@ -248,6 +265,7 @@ def main():
             f"the node's own settings (threshold {args.node_threshold:g}, drift {args.node_drift:g}) on {label}: "
             f"{found}/{true} found, {false} false in {frames} frames = {1000 * false / frames:.2f} per 1,000"
         )
+    chosen = {}
     for name, (code, grid) in variants.items():
         best = None
         for threshold, drift in grid:
@@ -257,6 +275,7 @@ def main():
         if best is None:
             print(f"{name}: nothing on the grid keeps within {args.budget} false per 1,000 frames on --choice")
             continue
+        chosen[name] = best[0]
         _, threshold, drift, on_choice = best
         print(f"\n{name}: chosen cusum_threshold {threshold}, cusum_drift {drift} ({on_choice} on --choice)")
         total = np.zeros(4, dtype=int)
@@ -280,6 +299,10 @@ def main():
                     most = -minus_found
                     front.append(f"{most} found at {false} false (h {h:g}, k {k:g})")
             print("  report trade-off: " + "; ".join(front))
+    discriminants = {name: score for name, score in chosen.items() if name.startswith("discriminant")}
+    if len(discriminants) > 1:
+        print(f"\nthe discriminant that finds the most on --choice (then the fewest false): "
+              f"{max(discriminants, key=discriminants.get)}")
 
 
 if __name__ == "__main__":

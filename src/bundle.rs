@@ -28,22 +28,41 @@ pub struct Manifest {
     pub metrics: serde_json::Value,
 }
 
-/// What the kit measured of the encoder's own uncertainty at export (absent: as reported).
-#[derive(Debug, Clone, Copy, Deserialize, serde::Serialize)]
+/// What the kit measured of the encoder's own uncertainty at export (absent: as reported), and
+/// what was fitted on the node's own clouds after it.
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 pub struct Calibration {
     /// How far one subject's z_I spreads over its poses and camera views, against the variance the
     /// encoder reports (median over dimensions of their ratio). The tracker multiplies the
     /// encoder's z_I variances by it, then by `[track] shape_variance_scale`.
     #[serde(rename = "z_I_variance_scale")]
     pub z_i_variance_scale: f32,
+    /// Directions of x_c that tell subjects of one family apart, fitted on the node's clouds of
+    /// sim subjects (`python -m gdvae fit-identity`); the tracker detects identity changes on
+    /// them (absent: on z_I).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub identity_projection: Option<IdentityProjection>,
 }
 
 impl Default for Calibration {
     fn default() -> Self {
         Self {
             z_i_variance_scale: 1.0,
+            identity_projection: None,
         }
     }
+}
+
+/// `calibration.identity_projection`: rows of weights on one encoder output, each a direction
+/// scaled to unit spread within one subject (models/README, "Identity projection").
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
+pub struct IdentityProjection {
+    /// The encoder output it reads; this node reads "x_c".
+    pub input: String,
+    pub matrix: Vec<Vec<f32>>,
+    /// How it was fitted (subjects, frames, the files), for the model card; not read.
+    #[serde(default)]
+    pub fitted_on: serde_json::Value,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -157,6 +176,22 @@ impl Bundle {
         let scale = m.calibration.z_i_variance_scale;
         if !(scale.is_finite() && scale > 0.0) {
             return Err(self.unsupported(format!("calibration z_I_variance_scale = {scale} must be positive")));
+        }
+        if let Some(projection) = &m.calibration.identity_projection {
+            let wrong = if projection.input != "x_c" {
+                Some(format!("reads '{}' (this node projects x_c)", projection.input))
+            } else if projection.matrix.is_empty() || projection.matrix.len() > s.x_c {
+                Some(format!("has {} rows (1 to x_c's {})", projection.matrix.len(), s.x_c))
+            } else if let Some(row) = projection.matrix.iter().position(|row| row.len() != s.x_c) {
+                Some(format!("row {row} has {} weights, not x_c's {}", projection.matrix[row].len(), s.x_c))
+            } else if projection.matrix.iter().flatten().any(|w| !w.is_finite()) {
+                Some("has a weight that is not finite".into())
+            } else {
+                None
+            };
+            if let Some(wrong) = wrong {
+                return Err(self.unsupported(format!("calibration identity_projection {wrong}")));
+            }
         }
         let u = &m.units;
         if u.input_unit != "metre" {

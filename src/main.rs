@@ -442,6 +442,15 @@ fn inspect_model(bundle: &Path, load: bool, onnxruntime: Option<&Path>) -> Resul
         "calibration: z_I variances x {} (1: none measured; see models/README, bundle format)",
         m.calibration.z_i_variance_scale
     );
+    match &m.calibration.identity_projection {
+        Some(p) => println!(
+            "calibration: identity changes on {} directions of {} (fitted on {})",
+            p.matrix.len(),
+            p.input,
+            p.fitted_on
+        ),
+        None => println!("calibration: identity changes on z_I (no identity projection)"),
+    }
     for key in ["S", "C_X", "d_C", "heading_error_median_deg"] {
         if let Some(value) = m.metrics.get(key).and_then(|v| v.as_f64()) {
             println!("metric {key}: {value:.4}");
@@ -502,9 +511,17 @@ fn evaluate(args: EvaluateArgs) -> Result<()> {
         )?;
     }
     if let Some(folder) = plots {
-        let threshold = match config.track.change_detector {
-            gdvae_node::config::ChangeDetector::Cusum => Some(config.track.cusum_threshold as f64),
-            gdvae_node::config::ChangeDetector::Consecutive => None,
+        let t = &config.track;
+        let projected = t.use_identity_projection
+            && Bundle::load(&config.model.bundle)?
+                .manifest
+                .calibration
+                .identity_projection
+                .is_some();
+        let threshold = match (t.change_detector, projected) {
+            (gdvae_node::config::ChangeDetector::Cusum, false) => Some(t.cusum_threshold as f64),
+            (gdvae_node::config::ChangeDetector::Cusum, true) => Some(t.identity_cusum_threshold as f64),
+            (gdvae_node::config::ChangeDetector::Consecutive, _) => None,
         };
         let written = gdvae_node::evaluate::write_plots(&report, folder, config.track.shape_gate as f64, threshold)?;
         eprintln!("evaluate: {} plot(s) in {}", written.len(), folder.display());

@@ -138,6 +138,11 @@ pub struct State {
     /// of the published message.
     #[serde(skip)]
     pub of_frame: Option<(usize, usize)>,
+    /// The encoder's x_c (yaw copies averaged), for `evaluate --states`, on which the bundle's
+    /// identity projection is fitted (`python -m gdvae fit-identity`); not part of the published
+    /// message.
+    #[serde(skip)]
+    pub x_c: Option<std::sync::Arc<[f32]>>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

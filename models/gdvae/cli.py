@@ -313,6 +313,19 @@ def import_bundle_command(args) -> int:
     return 0
 
 
+def fit_identity_command(args) -> int:
+    from .identity import fit_projection, read_states, write_projection
+
+    by_subject, unmatched = read_states(args.states)
+    fitted = fit_projection(by_subject, args.directions, args.ridge)
+    path = write_projection(args.bundle, fitted, args.states, args.directions, args.ridge)
+    subjects = ", ".join(f"{n} {family}s" for family, n in fitted["subjects"].items())
+    print(f"{path}: identity projection, {args.directions} directions of x_c fitted on {subjects} "
+          f"({fitted['frames']} frames; {unmatched} without ground truth left out); between/within "
+          f"subject ratio along them {', '.join(f'{v:.2f}' for v in fitted['between_within'])}")
+    return 0
+
+
 def screen_command(args) -> int:
     from .screen import screen
 
@@ -440,6 +453,16 @@ def main(argv=None) -> int:
     importing.add_argument("bundle", help="bundle folder written by `export`")
     importing.add_argument("--out", required=True, help="run folder to write (recipe.json, checkpoint.pt)")
     importing.set_defaults(handler=import_bundle_command)
+
+    identity = commands.add_parser(
+        "fit-identity", help="fit a bundle's identity projection on the node's clouds (evaluate --states of sim recordings)")
+    identity.add_argument("bundle", help="bundle folder whose manifest gets calibration.identity_projection")
+    identity.add_argument("states", nargs="+", help="`gdvae-node evaluate ... --states` files of sim recordings, made "
+                                                     "with this bundle, apart from the sets you report on")
+    identity.add_argument("--directions", type=int, default=5, help="directions kept (default 5)")
+    identity.add_argument("--ridge", type=float, default=0.03,
+                          help="within-subject scatter shrunk towards its mean variance by this share (default 0.03)")
+    identity.set_defaults(handler=fit_identity_command)
 
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)

@@ -530,6 +530,9 @@ fn recording_report(
 pub struct MatchedState<'a> {
     pub state: &'a State,
     pub truth: Option<&'a TruthFrame>,
+    /// The encoder's x_c for this frame (what `python -m gdvae fit-identity` fits on).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub x_c: Option<&'a [f32]>,
 }
 
 /// Every published state of `outputs`, in publishing order, with its ground truth.
@@ -543,6 +546,7 @@ pub fn matched_states<'a>(recordings: &'a [Recording], outputs: &'a [Output]) ->
         .filter_map(|output| match output {
             Output::State(state) => Some(MatchedState {
                 state,
+                x_c: state.x_c.as_deref(),
                 truth: state
                     .stamps
                     .sensor_ns

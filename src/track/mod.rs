@@ -25,6 +25,6 @@ pub use heading::{Heading, HeadingFilter};
 pub use objects::{ObjectTracks, TrackedCandidate};
 pub use pose::{confidence_from_log_variance, unwrap, yaw_of, OneEuro, Pose, PoseFilter};
 pub use settings::{ChangeDetector, HeadingMode, Smoothing, TrackSettings};
-pub use shape::{IdentityChange, ShapeFilter, ShapeUpdate};
+pub use shape::{IdentityChange, IdentityProjection, ShapeFilter, ShapeUpdate};
 pub use state::Observed;
 pub use stream::{step_dt, with_yaw, StreamTracker, Tracked};

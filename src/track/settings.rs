@@ -51,6 +51,17 @@ pub struct TrackSettings {
     pub cusum_drift: f32,
     /// CUSUM threshold h: a change is reported when the statistic reaches it.
     pub cusum_threshold: f32,
+    /// Detect identity changes on the bundle's identity projection of x_c when it has one
+    /// (`calibration.identity_projection`), else on z_I.
+    pub use_identity_projection: bool,
+    /// The CUSUM's drift and threshold on the identity projection's code (unit within-subject
+    /// spread per direction), in place of `cusum_drift` and `cusum_threshold`.
+    pub identity_cusum_drift: f32,
+    pub identity_cusum_threshold: f32,
+    /// The bundle's identity projection (rows of weights on x_c), set from the bundle at start;
+    /// not a config key.
+    #[serde(skip)]
+    pub identity_projection: Option<super::shape::IdentityProjection>,
     /// Smoothing of z_E and the rotation.
     pub smoothing: Smoothing,
     /// One-euro filter: cutoff at rest (Hz) and its increase per unit of speed.
@@ -112,6 +123,10 @@ impl Default for TrackSettings {
             change_detector: ChangeDetector::Cusum,
             cusum_drift: 3.0,
             cusum_threshold: 10.0,
+            use_identity_projection: true,
+            identity_cusum_drift: 9.0,
+            identity_cusum_threshold: 20.0,
+            identity_projection: None,
             smoothing: Smoothing::OneEuro,
             min_cutoff_hz: 1.0,
             beta: 0.5,
@@ -145,6 +160,8 @@ impl TrackSettings {
             ("shape_variance_scale", self.shape_variance_scale),
             ("cusum_drift", self.cusum_drift),
             ("cusum_threshold", self.cusum_threshold),
+            ("identity_cusum_drift", self.identity_cusum_drift),
+            ("identity_cusum_threshold", self.identity_cusum_threshold),
             ("min_cutoff_hz", self.min_cutoff_hz),
             ("nominal_rate_hz", self.nominal_rate_hz),
             ("heading_std_deg", self.heading_std_deg),

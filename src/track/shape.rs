@@ -15,6 +15,13 @@
 //!
 //! The fused variance has a floor (`min_shape_variance`), which makes the estimate a slowly
 //! forgetting average: it follows the slow drift of z_I as the subject turns and changes pose.
+//!
+//! With an **identity projection** (the bundle's `calibration.identity_projection`, fitted on the
+//! node's own clouds of many sim subjects; `[track] use_identity_projection`) the distances, the
+//! gate and the change detector work on the projected code of the encoder's x_c instead, whose
+//! directions are those that tell subjects of one family apart, scaled to unit within-subject
+//! spread (each frame's variance 1), with `identity_cusum_drift` / `identity_cusum_threshold`. The
+//! published z_I is still fused as above, on the same frames.
 
 use std::collections::VecDeque;
 
@@ -43,14 +50,62 @@ pub struct IdentityChange {
 const MAX_HELD: usize = 300;
 const CONFIDENCE_WINDOW: usize = 20;
 
+/// One frame's Gaussian in one space: z_I, or the identity projection's code.
 #[derive(Debug, Clone)]
-struct Held {
+struct Gaussian {
     mean: Vec<f32>,
     variance: Vec<f32>,
+}
+
+#[derive(Debug, Clone)]
+struct Held {
+    shape: Gaussian,
+    /// The identity projection's code, when there is one.
+    code: Option<Gaussian>,
     inlier: bool,
     /// Already in the estimate (a young estimate takes its inliers at once).
     fused: bool,
 }
+
+/// A precision-weighted running product of Gaussians, with a floor on its variance.
+#[derive(Debug, Clone, Default)]
+struct Fusion {
+    mean: Vec<f32>,
+    precision: Vec<f32>,
+}
+
+impl Fusion {
+    fn starting(width: usize) -> Self {
+        Self {
+            mean: vec![0.0; width],
+            precision: vec![0.0; width],
+        }
+    }
+
+    fn fuse(&mut self, frame: &Gaussian, max_precision: f32) {
+        for k in 0..self.mean.len() {
+            let p = 1.0 / frame.variance[k].max(1e-12);
+            let total = self.precision[k] + p;
+            self.mean[k] = (self.mean[k] * self.precision[k] + frame.mean[k] * p) / total;
+            self.precision[k] = total.min(max_precision);
+        }
+    }
+
+    /// Mean over dimensions of (mu - m)^2 / (frame variance + fused variance).
+    fn distance(&self, frame: &Gaussian) -> f32 {
+        let sum: f32 = frame
+            .mean
+            .iter()
+            .zip(&frame.variance)
+            .zip(self.mean.iter().zip(&self.precision))
+            .map(|((mu, var), (m, p))| (mu - m).powi(2) / (var + 1.0 / p))
+            .sum();
+        sum / frame.mean.len().max(1) as f32
+    }
+}
+
+/// The bundle's identity projection as the shape filter uses it: rows of weights on x_c.
+pub type IdentityProjection = std::sync::Arc<Vec<Vec<f32>>>;
 
 /// An estimate of fewer frames than this takes its inliers at once, even under suspicion: holding
 /// them would leave it resting on a handful of frames whose common error every later frame would
@@ -68,8 +123,11 @@ pub struct ShapeFilter {
     detector: ChangeDetector,
     drift: f32,
     threshold: f32,
-    mean: Vec<f32>,
-    precision: Vec<f32>,
+    projection: Option<IdentityProjection>,
+    /// The published z_I estimate.
+    shape: Fusion,
+    /// The identity projection's estimate, on which distances are taken when there is one.
+    code: Option<Fusion>,
     frames: u64,
     identity: u64,
     statistic: f32,
@@ -80,16 +138,25 @@ pub struct ShapeFilter {
 
 impl ShapeFilter {
     pub fn new(settings: &TrackSettings) -> Self {
+        let projection = settings
+            .identity_projection
+            .clone()
+            .filter(|_| settings.use_identity_projection);
+        let (drift, threshold) = match projection {
+            Some(_) => (settings.identity_cusum_drift, settings.identity_cusum_threshold),
+            None => (settings.cusum_drift, settings.cusum_threshold),
+        };
         Self {
             gate: settings.shape_gate,
             switch_frames: settings.switch_frames,
             max_precision: 1.0 / settings.min_shape_variance,
             variance_scale: settings.shape_variance_scale,
             detector: settings.change_detector,
-            drift: settings.cusum_drift,
-            threshold: settings.cusum_threshold,
-            mean: Vec::new(),
-            precision: Vec::new(),
+            drift,
+            threshold,
+            projection,
+            shape: Fusion::default(),
+            code: None,
             frames: 0,
             identity: 0,
             statistic: 0.0,
@@ -106,24 +173,52 @@ impl ShapeFilter {
         }
     }
 
+    /// Whether distances are taken on the identity projection's code (else on z_I).
+    pub fn projected(&self) -> bool {
+        self.projection.is_some()
+    }
+
+    /// One frame's z_I (mean, log-variance), without an identity projection's code: under a
+    /// projection, use [`ShapeFilter::update_coded`].
     pub fn update(&mut self, mean: &[f32], log_variance: &[f32]) -> ShapeUpdate {
+        self.update_coded(mean, log_variance, &[])
+    }
+
+    /// One frame's z_I (mean, log-variance) and the encoder's x_c, which the identity projection
+    /// (when there is one) reads. An x_c of another width than the projection's rows is a bundle
+    /// the node refused at start, so it cannot reach here; it is read as zeros.
+    pub fn update_coded(&mut self, mean: &[f32], log_variance: &[f32], x_c: &[f32]) -> ShapeUpdate {
         let variance: Vec<f32> = log_variance
             .iter()
             .map(|lv| lv.clamp(-20.0, 20.0).exp() * self.variance_scale)
             .collect();
-        if self.frames == 0 || self.mean.len() != mean.len() {
+        let shape = Gaussian {
+            mean: mean.to_vec(),
+            variance,
+        };
+        let code = self.projection.as_ref().map(|rows| Gaussian {
+            mean: rows
+                .iter()
+                .map(|row| row.iter().zip(x_c).map(|(w, x)| w * x).sum())
+                .collect(),
+            variance: vec![1.0; rows.len()],
+        });
+        if self.frames == 0 || self.shape.mean.len() != mean.len() {
             self.restart(vec![Held {
-                mean: mean.to_vec(),
-                variance,
+                shape,
+                code,
                 inlier: true,
                 fused: true,
             }]);
             return self.record(true, 0.0, None);
         }
-        let distance = self.distance_scaled(mean, &variance);
+        let distance = match (&self.code, &code) {
+            (Some(fused), Some(frame)) => fused.distance(frame),
+            _ => self.shape.distance(&shape),
+        };
         let frame = Held {
-            mean: mean.to_vec(),
-            variance,
+            shape,
+            code,
             inlier: distance <= self.gate,
             fused: false,
         };
@@ -135,7 +230,7 @@ impl ShapeFilter {
 
     fn consecutive(&mut self, frame: Held, distance: f32) -> ShapeUpdate {
         if frame.inlier {
-            self.fuse(&frame.mean, &frame.variance);
+            self.fuse(&frame);
             self.held.clear();
             self.statistic = 0.0;
             return self.record(true, distance, None);
@@ -158,23 +253,23 @@ impl ShapeFilter {
             // No suspicion (any more): what was held joins the estimate, then this frame.
             for held in std::mem::take(&mut self.held) {
                 if held.inlier && !held.fused {
-                    self.fuse(&held.mean, &held.variance);
+                    self.fuse(&held);
                 }
             }
             if inlier {
-                self.fuse(&frame.mean, &frame.variance);
+                self.fuse(&frame);
             }
             return self.record(inlier, distance, None);
         }
         if inlier && self.frames < MATURE_FRAMES {
-            self.fuse(&frame.mean, &frame.variance);
+            self.fuse(&frame);
             frame.fused = true;
         }
         self.held.push(frame);
         if self.held.len() > MAX_HELD {
             let oldest = self.held.remove(0);
             if oldest.inlier && !oldest.fused {
-                self.fuse(&oldest.mean, &oldest.variance);
+                self.fuse(&oldest);
             }
         }
         if self.statistic >= self.threshold && self.held.len() >= self.switch_frames {
@@ -198,39 +293,28 @@ impl ShapeFilter {
         }
     }
 
-    /// Mean over dimensions of (mu - m)^2 / (s sigma^2 + fused variance), with the frame's
-    /// variances as the encoder reports them (log-variances are not taken here).
+    /// Mean over dimensions of (mu - m)^2 / (s sigma^2 + fused variance) of a z_I, with the
+    /// frame's variances as the encoder reports them (log-variances are not taken here).
     pub fn distance(&self, mean: &[f32], variance: &[f32]) -> f32 {
-        let scaled: Vec<f32> = variance.iter().map(|v| v * self.variance_scale).collect();
-        self.distance_scaled(mean, &scaled)
-    }
-
-    fn distance_scaled(&self, mean: &[f32], variance: &[f32]) -> f32 {
-        let sum: f32 = mean
-            .iter()
-            .zip(variance)
-            .zip(self.mean.iter().zip(&self.precision))
-            .map(|((mu, var), (m, p))| (mu - m).powi(2) / (var + 1.0 / p))
-            .sum();
-        sum / mean.len().max(1) as f32
+        self.shape.distance(&Gaussian {
+            mean: mean.to_vec(),
+            variance: variance.iter().map(|v| v * self.variance_scale).collect(),
+        })
     }
 
     fn restart(&mut self, frames: Vec<Held>) {
-        let width = frames[0].mean.len();
-        self.mean = vec![0.0; width];
-        self.precision = vec![0.0; width];
+        self.shape = Fusion::starting(frames[0].shape.mean.len());
+        self.code = frames[0].code.as_ref().map(|code| Fusion::starting(code.mean.len()));
         self.frames = 0;
         for frame in &frames {
-            self.fuse(&frame.mean, &frame.variance);
+            self.fuse(frame);
         }
     }
 
-    fn fuse(&mut self, mean: &[f32], variance: &[f32]) {
-        for k in 0..self.mean.len() {
-            let p = 1.0 / variance[k].max(1e-12);
-            let total = self.precision[k] + p;
-            self.mean[k] = (self.mean[k] * self.precision[k] + mean[k] * p) / total;
-            self.precision[k] = total.min(self.max_precision);
+    fn fuse(&mut self, frame: &Held) {
+        self.shape.fuse(&frame.shape, self.max_precision);
+        if let (Some(fused), Some(code)) = (&mut self.code, &frame.code) {
+            fused.fuse(code, self.max_precision);
         }
         self.frames += 1;
     }
@@ -248,12 +332,14 @@ impl ShapeFilter {
         }
     }
 
+    /// The fused z_I.
     pub fn mean(&self) -> &[f32] {
-        &self.mean
+        &self.shape.mean
     }
 
+    /// The fused z_I's variance.
     pub fn variance(&self) -> Vec<f32> {
-        self.precision.iter().map(|p| 1.0 / p).collect()
+        self.shape.precision.iter().map(|p| 1.0 / p).collect()
     }
 
     pub fn identity(&self) -> u64 {

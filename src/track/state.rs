@@ -30,8 +30,9 @@ impl StreamTracker {
     /// its published state.
     pub fn state(&mut self, node: &str, frame: &Observed, dt: f32) -> State {
         let e = frame.encoding;
-        let tracked = self.update(
+        let tracked = self.update_coded(
             (&e.z_i_mean, &e.z_i_logvar),
+            &e.x_c,
             (e.q, e.yaw_spread),
             &e.z_e_mean,
             frame.centre_m,
@@ -101,6 +102,7 @@ impl StreamTracker {
             input: None,
             sensor_frame: None,
             of_frame: None,
+            x_c: Some(e.x_c.as_slice().into()),
         }
     }
 }

@@ -35,7 +35,7 @@ impl StreamTracker {
         }
     }
 
-    /// One encoded frame: z_I (mean, log-variance), the rotation q [w, x, y, z] with the scatter of
+    /// One encoded frame (without x_c: z_I decides identity changes): z_I (mean, log-variance), the rotation q [w, x, y, z] with the scatter of
     /// the encoder's yaw copies (`Encoding::yaw_spread`), z_E, the object's centre (m, gravity
     /// frame) and the time since the stream's previous frame (s).
     pub fn update(
@@ -46,7 +46,21 @@ impl StreamTracker {
         centre_m: [f32; 3],
         dt: f32,
     ) -> Tracked {
-        let shape = self.shape.update(z_i.0, z_i.1);
+        self.update_coded(z_i, &[], (q, yaw_spread), z_e, centre_m, dt)
+    }
+
+    /// [`StreamTracker::update`] with the encoder's x_c, which the shape filter's identity
+    /// projection reads when the bundle has one.
+    pub fn update_coded(
+        &mut self,
+        z_i: (&[f32], &[f32]),
+        x_c: &[f32],
+        (q, yaw_spread): ([f32; 4], Option<f32>),
+        z_e: &[f32],
+        centre_m: [f32; 3],
+        dt: f32,
+    ) -> Tracked {
+        let shape = self.shape.update_coded(z_i.0, z_i.1, x_c);
         if shape.change.is_some() {
             self.heading.reset();
         }

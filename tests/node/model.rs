@@ -110,6 +110,17 @@ fn altered_or_unsupported_bundles_are_refused_with_the_reason() {
         let error = Bundle::load(dir.path()).unwrap_err().to_string();
         assert!(error.contains("z_I_variance_scale"), "{error}");
     }
+    let width = calibrated["sizes"]["x_c"].as_u64().unwrap() as usize;
+    for (projection, expected) in [
+        (serde_json::json!({ "input": "z_I", "matrix": [vec![0.0; width]] }), "reads 'z_I'"),
+        (serde_json::json!({ "input": "x_c", "matrix": [vec![0.0; width], vec![0.0; width - 1]] }), "row 1 has"),
+        (serde_json::json!({ "input": "x_c", "matrix": [] }), "has 0 rows"),
+    ] {
+        calibrated["calibration"] = serde_json::json!({ "z_I_variance_scale": 1.0, "identity_projection": projection });
+        std::fs::write(dir.path().join("manifest.json"), calibrated.to_string()).unwrap();
+        let error = Bundle::load(dir.path()).unwrap_err().to_string();
+        assert!(error.contains("identity_projection") && error.contains(expected), "{error} lacks '{expected}'");
+    }
     std::fs::write(dir.path().join("manifest.json"), "{ not json").unwrap();
     assert!(Bundle::load(dir.path())
         .unwrap_err()

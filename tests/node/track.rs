@@ -840,3 +840,62 @@ fn with_a_least_travel_a_walk_still_sets_the_heading() {
         "after 3.5 s the track faces the walk (worst {worst:.1} deg)"
     );
 }
+
+/// Frames of one subject as the encoder gives them under an identity projection: z_I with noise
+/// 0.05 about `z_i`, and an x_c of 8 dimensions whose first is `identity` plus unit noise (the
+/// within-subject spread the projection is scaled to) and whose others wander far more.
+fn coded_frames(z_i: &[f32], identity: f32, count: usize, rng: &mut ChaCha8Rng) -> Vec<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+    let (unit, wander) = (Normal::new(0.0, 1.0).unwrap(), Normal::new(0.0, 10.0).unwrap());
+    frames(z_i, 0.05, count, rng)
+        .into_iter()
+        .map(|(mean, lv)| {
+            let mut x_c: Vec<f32> = (0..8).map(|_| wander.sample(rng)).collect();
+            x_c[0] = identity + unit.sample(rng);
+            (mean, lv, x_c)
+        })
+        .collect()
+}
+
+#[test]
+fn under_an_identity_projection_a_change_only_x_c_shows_is_found_and_z_i_is_still_fused() {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    // One direction: x_c's first dimension, in units of its within-subject spread.
+    let mut row = vec![0.0f32; 8];
+    row[0] = 1.0;
+    let projected = TrackSettings {
+        identity_projection: Some(std::sync::Arc::new(vec![row])),
+        ..calibrated()
+    };
+    let on_z_i = TrackSettings {
+        use_identity_projection: false,
+        ..projected.clone()
+    };
+    // Two subjects whose z_I is the same (what the encoder's z_I cannot tell apart) and whose
+    // projected x_c lies 5 within-subject spreads apart.
+    let z_i = object(0.0);
+    let first = coded_frames(&z_i, 0.0, 200, &mut rng);
+    let second = coded_frames(&z_i, 5.0, 100, &mut rng);
+    let mut filter = ShapeFilter::new(&projected);
+    let mut plain = ShapeFilter::new(&on_z_i);
+    assert!(filter.projected() && !plain.projected());
+    for (mean, lv, x_c) in &first {
+        assert!(filter.update_coded(mean, lv, x_c).change.is_none(), "a false change");
+        assert!(plain.update_coded(mean, lv, x_c).change.is_none());
+    }
+    let found = second
+        .iter()
+        .position(|(mean, lv, x_c)| filter.update_coded(mean, lv, x_c).change.is_some())
+        .expect("the change is found on the projection");
+    assert!(found < 10, "found {found} frames after the change");
+    assert!(second
+        .iter()
+        .all(|(mean, lv, x_c)| plain.update_coded(mean, lv, x_c).change.is_none()));
+    // The published z_I is still the fused z_I.
+    let error = filter
+        .mean()
+        .iter()
+        .zip(&z_i)
+        .map(|(m, t)| (m - t).abs())
+        .fold(0.0f32, f32::max);
+    assert!(error < 0.1, "fused z_I off by {error} (its noise: 0.05 a frame, averaged over a few)");
+}
