@@ -82,12 +82,14 @@ pub struct Shape {
     pub frames_fused: u64,
     /// This frame was fused (false: an outlier, held out).
     pub inlier: bool,
-    /// This frame's mean squared standardized distance to the estimate before it.
+    /// This frame's mean squared standardized distance to the estimate before it: of z_I, or of
+    /// the identity projection's code when the bundle has one (`track.use_identity_projection`).
     pub distance: f32,
     /// Fraction of recent frames (up to 20, since the last change) that were fused.
     pub confidence: f32,
     /// The change detector's statistic after this frame (CUSUM of distances; a change is reported
-    /// when it reaches `track.cusum_threshold`). Under `change_detector = "consecutive"`: the
+    /// when it reaches `track.cusum_threshold`, or `track.identity_cusum_threshold` on an identity
+    /// projection). Under `change_detector = "consecutive"`: the
     /// current run of outliers.
     #[serde(default)]
     pub change_statistic: f32,
