@@ -37,9 +37,13 @@ import argparse
 import itertools
 import json
 import math
+import pathlib
 import sys
 
 import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "models"))
+from gdvae.identity import fit_projection  # noqa: E402  (the kit's fit, which the bundle gets)
 
 GATE, SWITCH, MIN_VARIANCE, MAX_HELD, MATURE, TOLERANCE = 2.0, 5, 4e-4, 300, 30, 10
 
@@ -177,31 +181,13 @@ def count(streams, threshold, drift, code):
 
 def discriminant(streams, directions, ridge, key):
     """Rows: the `directions` most discriminant directions of frame[key] for same-family subjects,
-    scaled so that the within-subject scatter is 1 along each (models/gdvae/identity.py's fit)."""
+    scaled so that the within-subject scatter is 1 along each: the kit's fit-identity fit."""
     by_subject = {}
     for _, frames, _ in streams:
         for f in frames:
-            by_subject.setdefault((f["subject"], f["family"]), []).append(f[key])
-    width = len(next(iter(by_subject.values()))[0])
-    within, n, means = np.zeros((width, width)), 0, {}
-    for key, codes in by_subject.items():
-        codes = np.array(codes)
-        means[key] = codes.mean(0)
-        within += (codes - means[key]).T @ (codes - means[key])
-        n += len(codes)
-    within /= n
-    between, families = np.zeros((width, width)), 0
-    for family in {f for _, f in means}:
-        centred = np.array([m for (_, f), m in means.items() if f == family])
-        centred -= centred.mean(0)
-        between += centred.T @ centred / len(centred)
-        families += 1
-    between /= families
-    within += ridge * np.trace(within) / width * np.eye(width)
-    inverse_root = np.linalg.inv(np.linalg.cholesky(within))
-    values, vectors = np.linalg.eigh(inverse_root @ between @ inverse_root.T)
-    order = np.argsort(values)[::-1][:directions]
-    return vectors[:, order].T @ inverse_root, len(by_subject), values[order]
+            by_subject.setdefault((f["family"], f["subject"]), []).append(f[key])
+    fitted = fit_projection(by_subject, directions, ridge)
+    return fitted["matrix"], len(by_subject), fitted["between_within"]
 
 
 def main():
