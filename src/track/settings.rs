@@ -30,6 +30,10 @@ pub enum ChangeDetector {
     Consecutive,
 }
 
+/// The bundle's identity projection as the shape filter uses it: its rows, each a direction of x_c
+/// (`bundle::IdentityProjection::matrix`).
+pub type IdentityDirections = std::sync::Arc<Vec<Vec<f32>>>;
+
 /// `[track]`: every setting of the track stage. `config/default.toml` documents each key;
 /// docs/tracking.md says how to tune them for a new bundle or sensor.
 #[derive(Debug, Clone, Deserialize, Serialize)]
@@ -61,7 +65,7 @@ pub struct TrackSettings {
     /// The bundle's identity projection (rows of weights on x_c), set from the bundle at start;
     /// not a config key.
     #[serde(skip)]
-    pub identity_projection: Option<super::shape::IdentityProjection>,
+    pub identity_projection: Option<IdentityDirections>,
     /// Smoothing of z_E and the rotation.
     pub smoothing: Smoothing,
     /// One-euro filter: cutoff at rest (Hz) and its increase per unit of speed.

@@ -25,7 +25,7 @@
 
 use std::collections::VecDeque;
 
-use super::settings::{ChangeDetector, TrackSettings};
+use super::settings::{ChangeDetector, IdentityDirections, TrackSettings};
 
 /// What one frame did to the shape estimate.
 #[derive(Debug, Clone, PartialEq)]
@@ -104,9 +104,6 @@ impl Fusion {
     }
 }
 
-/// The bundle's identity projection as the shape filter uses it: rows of weights on x_c.
-pub type IdentityProjection = std::sync::Arc<Vec<Vec<f32>>>;
-
 /// An estimate of fewer frames than this takes its inliers at once, even under suspicion: holding
 /// them would leave it resting on a handful of frames whose common error every later frame would
 /// seem to confirm.
@@ -123,7 +120,7 @@ pub struct ShapeFilter {
     detector: ChangeDetector,
     drift: f32,
     threshold: f32,
-    projection: Option<IdentityProjection>,
+    projection: Option<IdentityDirections>,
     /// The published z_I estimate.
     shape: Fusion,
     /// The identity projection's estimate, on which distances are taken when there is one.
