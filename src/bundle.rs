@@ -60,6 +60,9 @@ pub struct IdentityProjection {
     /// The encoder output it reads; this node reads "x_c".
     pub input: String,
     pub matrix: Vec<Vec<f32>>,
+    /// The sha256 of the `encoder.onnx` whose x_c it was fitted on: another encoder's x_c means
+    /// something else, so the node refuses the pair.
+    pub encoder_sha256: String,
     /// How it was fitted (subjects, frames, the files), for the model card; not read.
     #[serde(default)]
     pub fitted_on: serde_json::Value,
@@ -186,6 +189,15 @@ impl Bundle {
                 Some(format!("row {row} has {} weights, not x_c's {}", projection.matrix[row].len(), s.x_c))
             } else if projection.matrix.iter().flatten().any(|w| !w.is_finite()) {
                 Some("has a weight that is not finite".into())
+            } else if m
+                .files
+                .get("encoder.onnx")
+                .is_some_and(|e| !e.sha256.eq_ignore_ascii_case(&projection.encoder_sha256))
+            {
+                Some(format!(
+                    "was fitted on another encoder (sha256 {}): fit it again on this one (python -m gdvae fit-identity)",
+                    projection.encoder_sha256
+                ))
             } else {
                 None
             };

@@ -444,10 +444,13 @@ fn inspect_model(bundle: &Path, load: bool, onnxruntime: Option<&Path>) -> Resul
     );
     match &m.calibration.identity_projection {
         Some(p) => println!(
-            "calibration: identity changes on {} directions of {} (fitted on {})",
+            "calibration: identity changes on {} directions of {} (fitted on {} subjects, {} frames)",
             p.matrix.len(),
             p.input,
-            p.fitted_on
+            p.fitted_on["subjects"]
+                .as_object()
+                .map_or(0, |families| families.values().filter_map(|n| n.as_u64()).sum::<u64>()),
+            p.fitted_on["frames"]
         ),
         None => println!("calibration: identity changes on z_I (no identity projection)"),
     }

@@ -90,9 +90,14 @@ def write_projection(bundle: str | pathlib.Path, fitted: dict, states: list[str]
     if fitted["matrix"].shape[1] != x_c:
         raise ValueError(f"the states' x_c has {fitted['matrix'].shape[1]} dimensions, the bundle's {x_c}: "
                          f"states of another bundle")
+    encoder = manifest.get("files", {}).get("encoder.onnx", {}).get("sha256")
+    if not encoder:
+        raise ValueError(f"{manifest_path} lists no encoder.onnx sha256: not a bundle written by `export`")
     manifest.setdefault("calibration", {})["identity_projection"] = {
         "input": "x_c",
         "matrix": [[float(w) for w in row] for row in fitted["matrix"]],
+        # The node refuses the projection beside any other encoder.
+        "encoder_sha256": encoder,
         "fitted_on": {
             "states": [pathlib.Path(p).name for p in states],
             "subjects": fitted["subjects"],

@@ -52,12 +52,14 @@ def test_fit_identity_writes_the_projection_into_the_manifest_and_keeps_the_rest
     write_states(tmp_path / "states.jsonl", np.random.default_rng(1))
     bundle = tmp_path / "bundle"
     bundle.mkdir()
-    manifest = {"sizes": {"x_c": WIDTH}, "calibration": {"z_I_variance_scale": 0.5}, "files": {"encoder.onnx": {}}}
+    manifest = {"sizes": {"x_c": WIDTH}, "calibration": {"z_I_variance_scale": 0.5},
+                "files": {"encoder.onnx": {"sha256": "ab12"}}}
     (bundle / "manifest.json").write_text(json.dumps(manifest))
     assert main(["fit-identity", str(bundle), str(tmp_path / "states.jsonl"), "--directions", "3"]) == 0
     written = json.loads((bundle / "manifest.json").read_text())
     projection = written["calibration"]["identity_projection"]
     assert projection["input"] == "x_c" and len(projection["matrix"]) == 3
+    assert projection["encoder_sha256"] == "ab12"
     assert all(len(row) == WIDTH for row in projection["matrix"])
     assert projection["fitted_on"]["subjects"] == {"biped": 6, "quadruped": 6}
     assert written["calibration"]["z_I_variance_scale"] == 0.5 and written["files"] == manifest["files"]
@@ -71,7 +73,7 @@ def test_states_without_x_c_or_a_lone_subject_are_refused_with_the_reason(tmp_pa
     write_states(tmp_path / "one.jsonl", np.random.default_rng(3), subjects=1)
     bundle = tmp_path / "bundle"
     bundle.mkdir()
-    (bundle / "manifest.json").write_text(json.dumps({"sizes": {"x_c": WIDTH}}))
+    (bundle / "manifest.json").write_text(json.dumps({"sizes": {"x_c": WIDTH}, "files": {"encoder.onnx": {"sha256": "ab"}}}))
     assert main(["fit-identity", str(bundle), str(tmp_path / "one.jsonl")]) == 2
     assert "family 'biped' has 1 subject" in capsys.readouterr().err
     # Nothing was written on failure.

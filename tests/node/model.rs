@@ -111,10 +111,18 @@ fn altered_or_unsupported_bundles_are_refused_with_the_reason() {
         assert!(error.contains("z_I_variance_scale"), "{error}");
     }
     let width = calibrated["sizes"]["x_c"].as_u64().unwrap() as usize;
+    let encoder = calibrated["files"]["encoder.onnx"]["sha256"].clone();
     for (projection, expected) in [
-        (serde_json::json!({ "input": "z_I", "matrix": [vec![0.0; width]] }), "reads 'z_I'"),
-        (serde_json::json!({ "input": "x_c", "matrix": [vec![0.0; width], vec![0.0; width - 1]] }), "row 1 has"),
-        (serde_json::json!({ "input": "x_c", "matrix": [] }), "has 0 rows"),
+        (serde_json::json!({ "input": "z_I", "matrix": [vec![0.0; width]], "encoder_sha256": encoder }), "reads 'z_I'"),
+        (
+            serde_json::json!({ "input": "x_c", "matrix": [vec![0.0; width], vec![0.0; width - 1]], "encoder_sha256": encoder }),
+            "row 1 has",
+        ),
+        (serde_json::json!({ "input": "x_c", "matrix": [], "encoder_sha256": encoder }), "has 0 rows"),
+        (
+            serde_json::json!({ "input": "x_c", "matrix": [vec![0.0; width]], "encoder_sha256": "00ff" }),
+            "fitted on another encoder",
+        ),
     ] {
         calibrated["calibration"] = serde_json::json!({ "z_I_variance_scale": 1.0, "identity_projection": projection });
         std::fs::write(dir.path().join("manifest.json"), calibrated.to_string()).unwrap();
@@ -186,6 +194,18 @@ fn inspect_model_shows_the_bundles_calibration() {
     let scale = Bundle::load(shipped()).unwrap().manifest.calibration.z_i_variance_scale;
     assert!(
         stdout.contains(&format!("calibration: z_I variances x {scale} ")),
+        "{stdout}"
+    );
+    let directions = Bundle::load(shipped())
+        .unwrap()
+        .manifest
+        .calibration
+        .identity_projection
+        .expect("the default bundle has an identity projection")
+        .matrix
+        .len();
+    assert!(
+        stdout.contains(&format!("calibration: identity changes on {directions} directions of x_c")),
         "{stdout}"
     );
 }
