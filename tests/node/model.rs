@@ -196,7 +196,16 @@ fn inspect_model_shows_the_bundles_calibration() {
         stdout.contains(&format!("calibration: z_I variances x {scale} ")),
         "{stdout}"
     );
-    let directions = Bundle::load(shipped())
+    assert!(stdout.contains("calibration: identity changes on z_I (no identity projection)"), "{stdout}");
+    // The default bundle detects identity changes on its identity projection.
+    let default = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/bundles/h200-fo-pose");
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
+        .args(["inspect-model"])
+        .arg(&default)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let directions = Bundle::load(&default)
         .unwrap()
         .manifest
         .calibration
@@ -205,7 +214,7 @@ fn inspect_model_shows_the_bundles_calibration() {
         .matrix
         .len();
     assert!(
-        stdout.contains(&format!("calibration: identity changes on {directions} directions of x_c")),
+        stdout.contains(&format!("calibration: identity changes on {directions} directions of x_c (fitted on 352 subjects")),
         "{stdout}"
     );
 }
