@@ -60,8 +60,8 @@ pub struct IdentityProjection {
     /// The encoder output it reads; this node reads "x_c".
     pub input: String,
     pub matrix: Vec<Vec<f32>>,
-    /// The sha256 of the `encoder.onnx` whose x_c it was fitted on: another encoder's x_c means
-    /// something else, so the node refuses the pair.
+    /// The sha256 of the `encoder.onnx` whose x_c it was fitted on: beside another encoder, whose
+    /// x_c means something else, the node drops it with a warning (`Bundle::load`).
     pub encoder_sha256: String,
     /// How it was fitted (subjects, frames, the files), for the model card; not read.
     #[serde(default)]
@@ -136,9 +136,29 @@ impl Bundle {
             path: folder.clone(),
             source,
         })?;
-        let bundle = Self { folder, manifest };
+        let mut bundle = Self { folder, manifest };
         bundle.check()?;
+        bundle.drop_stale_identity_projection();
         Ok(bundle)
+    }
+
+    /// An identity projection fitted on another encoder than the bundle's reads an x_c that means
+    /// something else: it is dropped with a warning (identity changes are then found on z_I), so
+    /// that the node still runs and the states to fit it again can be written.
+    fn drop_stale_identity_projection(&mut self) {
+        let m = &mut self.manifest;
+        let encoder = m.files.get("encoder.onnx").map(|e| e.sha256.clone()).unwrap_or_default();
+        if let Some(p) = &m.calibration.identity_projection {
+            if !p.encoder_sha256.eq_ignore_ascii_case(&encoder) {
+                log::warn!(
+                    "bundle {}: its identity projection was fitted on another encoder (sha256 {}), so identity \
+                     changes are found on z_I; fit it again (python -m gdvae fit-identity, `make fit-identity`)",
+                    self.folder.display(),
+                    p.encoder_sha256
+                );
+                m.calibration.identity_projection = None;
+            }
+        }
     }
 
     pub fn path(&self, file: &str) -> PathBuf {
@@ -189,15 +209,6 @@ impl Bundle {
                 Some(format!("row {row} has {} weights, not x_c's {}", projection.matrix[row].len(), s.x_c))
             } else if projection.matrix.iter().flatten().any(|w| !w.is_finite()) {
                 Some("has a weight that is not finite".into())
-            } else if m
-                .files
-                .get("encoder.onnx")
-                .is_some_and(|e| !e.sha256.eq_ignore_ascii_case(&projection.encoder_sha256))
-            {
-                Some(format!(
-                    "was fitted on another encoder (sha256 {}): fit it again on this one (python -m gdvae fit-identity)",
-                    projection.encoder_sha256
-                ))
             } else {
                 None
             };

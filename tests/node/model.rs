@@ -119,16 +119,21 @@ fn altered_or_unsupported_bundles_are_refused_with_the_reason() {
             "row 1 has",
         ),
         (serde_json::json!({ "input": "x_c", "matrix": [], "encoder_sha256": encoder }), "has 0 rows"),
-        (
-            serde_json::json!({ "input": "x_c", "matrix": [vec![0.0; width]], "encoder_sha256": "00ff" }),
-            "fitted on another encoder",
-        ),
     ] {
         calibrated["calibration"] = serde_json::json!({ "z_I_variance_scale": 1.0, "identity_projection": projection });
         std::fs::write(dir.path().join("manifest.json"), calibrated.to_string()).unwrap();
         let error = Bundle::load(dir.path()).unwrap_err().to_string();
         assert!(error.contains("identity_projection") && error.contains(expected), "{error} lacks '{expected}'");
     }
+    // Fitted on another encoder: the bundle still loads, without it (identity changes on z_I).
+    calibrated["calibration"] = serde_json::json!({ "z_I_variance_scale": 1.0, "identity_projection":
+        { "input": "x_c", "matrix": [vec![0.0; width]], "encoder_sha256": "00ff" } });
+    std::fs::write(dir.path().join("manifest.json"), calibrated.to_string()).unwrap();
+    let loaded = Bundle::load(dir.path()).expect("a stale projection does not stop the bundle");
+    assert!(loaded.manifest.calibration.identity_projection.is_none());
+    calibrated["calibration"]["identity_projection"]["encoder_sha256"] = encoder.clone();
+    std::fs::write(dir.path().join("manifest.json"), calibrated.to_string()).unwrap();
+    assert!(Bundle::load(dir.path()).unwrap().manifest.calibration.identity_projection.is_some());
     std::fs::write(dir.path().join("manifest.json"), "{ not json").unwrap();
     assert!(Bundle::load(dir.path())
         .unwrap_err()
