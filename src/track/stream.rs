@@ -35,9 +35,10 @@ impl StreamTracker {
         }
     }
 
-    /// One encoded frame (without x_c: z_I decides identity changes): z_I (mean, log-variance), the rotation q [w, x, y, z] with the scatter of
+    /// One encoded frame: z_I (mean, log-variance), the rotation q [w, x, y, z] with the scatter of
     /// the encoder's yaw copies (`Encoding::yaw_spread`), z_E, the object's centre (m, gravity
-    /// frame) and the time since the stream's previous frame (s).
+    /// frame) and the time since the stream's previous frame (s). Without x_c: for filters on z_I
+    /// (an identity projection reads x_c; the pipeline calls [`StreamTracker::update_coded`]).
     pub fn update(
         &mut self,
         z_i: (&[f32], &[f32]),
