@@ -44,6 +44,13 @@ pub struct Calibration {
     pub identity_projection: Option<IdentityProjection>,
 }
 
+impl Calibration {
+    /// The identity projection's rows as the tracker takes them (`[track]` identity_projection).
+    pub fn identity_directions(&self) -> Option<std::sync::Arc<Vec<Vec<f32>>>> {
+        self.identity_projection.as_ref().map(|p| std::sync::Arc::new(p.matrix.clone()))
+    }
+}
+
 impl Default for Calibration {
     fn default() -> Self {
         Self {

@@ -514,17 +514,12 @@ fn evaluate(args: EvaluateArgs) -> Result<()> {
         )?;
     }
     if let Some(folder) = plots {
-        let t = &config.track;
-        let projected = t.use_identity_projection
-            && Bundle::load(&config.model.bundle)?
-                .manifest
-                .calibration
-                .identity_projection
-                .is_some();
-        let threshold = match (t.change_detector, projected) {
-            (gdvae_node::config::ChangeDetector::Cusum, false) => Some(t.cusum_threshold as f64),
-            (gdvae_node::config::ChangeDetector::Cusum, true) => Some(t.identity_cusum_threshold as f64),
-            (gdvae_node::config::ChangeDetector::Consecutive, _) => None,
+        // The threshold of the space the pipeline's shape filters worked in (the bundle decides).
+        let mut track = config.track.clone();
+        track.identity_projection = Bundle::load(&config.model.bundle)?.manifest.calibration.identity_directions();
+        let threshold = match track.change_detector {
+            gdvae_node::config::ChangeDetector::Cusum => Some(track.cusum().1 as f64),
+            gdvae_node::config::ChangeDetector::Consecutive => None,
         };
         let written = gdvae_node::evaluate::write_plots(&report, folder, config.track.shape_gate as f64, threshold)?;
         eprintln!("evaluate: {} plot(s) in {}", written.len(), folder.display());

@@ -263,22 +263,16 @@ pub fn run(
             config.track.shape_variance_scale / calibration,
             config.track.shape_variance_scale
         );
-        config.track.identity_projection = bundle
-            .manifest
-            .calibration
-            .identity_projection
-            .as_ref()
-            .map(|p| std::sync::Arc::new(p.matrix.clone()));
+        config.track.identity_projection = bundle.manifest.calibration.identity_directions();
         let t = &config.track;
-        match (&t.identity_projection, t.use_identity_projection) {
-            (Some(rows), true) => log::info!(
-                "track: identity changes on the bundle's identity projection ({} directions of x_c; drift {}, threshold {})",
-                rows.len(),
-                t.identity_cusum_drift,
-                t.identity_cusum_threshold
+        let (drift, threshold) = t.cusum();
+        match (t.identity_directions(), &t.identity_projection) {
+            (Some(rows), _) => log::info!(
+                "track: identity changes on the bundle's identity projection ({} directions of x_c; drift {drift}, threshold {threshold})",
+                rows.len()
             ),
-            (Some(_), false) => log::info!("track: identity changes on z_I (use_identity_projection = false)"),
-            (None, _) => log::info!("track: identity changes on z_I (the bundle has no identity projection)"),
+            (None, Some(_)) => log::info!("track: identity changes on z_I (use_identity_projection = false)"),
+            (None, None) => log::info!("track: identity changes on z_I (the bundle has no identity projection)"),
         }
         // The heading filter's noise (12 degrees) was chosen on the 4 yaw copies' fused reading;
         // for one copy 25 was (config/default.toml; docs/tracking.md "The yaw copies' scatter,

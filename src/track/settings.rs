@@ -157,6 +157,20 @@ impl Default for TrackSettings {
 }
 
 impl TrackSettings {
+    /// The identity directions the shape filter works on: the bundle's, unless
+    /// `use_identity_projection` is off (None: on z_I).
+    pub fn identity_directions(&self) -> Option<&IdentityDirections> {
+        self.identity_projection.as_ref().filter(|_| self.use_identity_projection)
+    }
+
+    /// The CUSUM's drift and threshold in the space the shape filter works in.
+    pub fn cusum(&self) -> (f32, f32) {
+        match self.identity_directions() {
+            Some(_) => (self.identity_cusum_drift, self.identity_cusum_threshold),
+            None => (self.cusum_drift, self.cusum_threshold),
+        }
+    }
+
     pub fn validate(&self) -> Result<(), String> {
         let positive = [
             ("shape_gate", self.shape_gate),

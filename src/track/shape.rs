@@ -135,14 +135,7 @@ pub struct ShapeFilter {
 
 impl ShapeFilter {
     pub fn new(settings: &TrackSettings) -> Self {
-        let projection = settings
-            .identity_projection
-            .clone()
-            .filter(|_| settings.use_identity_projection);
-        let (drift, threshold) = match projection {
-            Some(_) => (settings.identity_cusum_drift, settings.identity_cusum_threshold),
-            None => (settings.cusum_drift, settings.cusum_threshold),
-        };
+        let (drift, threshold) = settings.cusum();
         Self {
             gate: settings.shape_gate,
             switch_frames: settings.switch_frames,
@@ -151,7 +144,7 @@ impl ShapeFilter {
             detector: settings.change_detector,
             drift,
             threshold,
-            projection,
+            projection: settings.identity_directions().cloned(),
             shape: Fusion::default(),
             code: None,
             frames: 0,

@@ -38,6 +38,11 @@ fn calibrated() -> TrackSettings {
     }
 }
 
+/// The largest difference between two codes, over their dimensions.
+fn largest_difference(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+}
+
 fn object(offset: f32) -> Vec<f32> {
     (0..DIMENSIONS).map(|k| offset + 0.1 * k as f32).collect()
 }
@@ -119,12 +124,7 @@ fn an_identity_switch_is_detected_within_switch_frames() {
         "detected on the switch_frames-th frame of the new object"
     );
     assert_eq!(filter.identity(), 1, "exactly one change");
-    let error = filter
-        .mean()
-        .iter()
-        .zip(&second)
-        .map(|(m, t)| (m - t).abs())
-        .fold(0.0, f32::max);
+    let error = largest_difference(filter.mean(), &second);
     assert!(
         error < 0.05,
         "after the switch the filter tracks the new object (max error {error})"
@@ -395,12 +395,7 @@ fn one_wild_frame_adds_a_bounded_amount_of_evidence() {
         assert!(filter.update(&mean, &lv).change.is_none());
     }
     assert_eq!(filter.identity(), 0);
-    let moved = filter
-        .mean()
-        .iter()
-        .zip(&before)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f32::max);
+    let moved = largest_difference(filter.mean(), &before);
     assert!(moved < 0.05, "the wild frame was not fused (moved {moved})");
 }
 
@@ -891,11 +886,6 @@ fn under_an_identity_projection_a_change_only_x_c_shows_is_found_and_z_i_is_stil
         .iter()
         .all(|(mean, lv, x_c)| plain.update_coded(mean, lv, x_c).change.is_none()));
     // The published z_I is still the fused z_I.
-    let error = filter
-        .mean()
-        .iter()
-        .zip(&z_i)
-        .map(|(m, t)| (m - t).abs())
-        .fold(0.0f32, f32::max);
+    let error = largest_difference(filter.mean(), &z_i);
     assert!(error < 0.1, "fused z_I off by {error} (its noise: 0.05 a frame, averaged over a few)");
 }
