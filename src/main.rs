@@ -146,6 +146,11 @@ struct EvaluateArgs {
     /// (`{"state": ..., "truth": ...}`; truth null when unmatched), for studying the raw streams.
     #[arg(long)]
     states: Option<PathBuf>,
+    /// Write the N_p points the encoder saw for every published state, in `--states`' order, as
+    /// a NumPy `.npy` array [states, N_p, 3] (float32, model units, centred), for training on
+    /// the node's own clouds.
+    #[arg(long)]
+    clouds: Option<PathBuf>,
 }
 
 #[derive(clap::Args)]
@@ -507,11 +512,14 @@ fn evaluate(args: EvaluateArgs) -> Result<()> {
     require_states(&summary)?;
     let outputs: Vec<_> = rx.try_iter().collect();
     let report = gdvae_node::evaluate::report(&recordings, &outputs, &options);
-    if let Some(path) = &args.states {
-        gdvae_node::evaluate::print::write_matched_states(
-            path,
-            &gdvae_node::evaluate::matched_states(&recordings, &outputs),
-        )?;
+    if args.states.is_some() || args.clouds.is_some() {
+        let matched = gdvae_node::evaluate::matched_states(&recordings, &outputs);
+        if let Some(path) = &args.states {
+            gdvae_node::evaluate::print::write_matched_states(path, &matched)?;
+        }
+        if let Some(path) = &args.clouds {
+            gdvae_node::evaluate::print::write_clouds(path, &matched)?;
+        }
     }
     if let Some(folder) = plots {
         // The threshold of the space the pipeline's shape filters worked in (the bundle decides).

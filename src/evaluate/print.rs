@@ -275,3 +275,51 @@ pub fn write_matched_states(path: &Path, states: &[MatchedState]) -> anyhow::Res
     eprintln!("evaluate: {} state(s) in {}", states.len(), path.display());
     Ok(())
 }
+
+/// `--clouds`: the encoder's input of every state (in `states`' order) as a NumPy `.npy` array
+/// [states, N_p, 3] of little-endian float32. A state without its cloud is an error (every state
+/// the pipeline publishes carries it).
+pub fn write_clouds(path: &Path, states: &[MatchedState]) -> anyhow::Result<()> {
+    use std::io::Write;
+    let clouds: Vec<&[[f32; 3]]> = states
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            s.state
+                .prepared
+                .as_deref()
+                .map(Vec::as_slice)
+                .ok_or_else(|| anyhow::anyhow!("state {i} (stream '{}') carries no encoder input", s.state.stream))
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let points = clouds.first().map_or(0, |c| c.len());
+    if let Some((i, c)) = clouds.iter().enumerate().find(|(_, c)| c.len() != points) {
+        anyhow::bail!("state {i} has {} points, the first {points}: one .npy array needs one N_p", c.len());
+    }
+    let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut out = std::io::BufWriter::new(file);
+    out.write_all(&npy_header(&[clouds.len(), points, 3]))?;
+    for point in clouds.iter().flat_map(|c| c.iter()) {
+        for v in point {
+            out.write_all(&v.to_le_bytes())?;
+        }
+    }
+    out.flush().with_context(|| format!("writing {}", path.display()))?;
+    eprintln!("evaluate: {} cloud(s) of {points} points in {}", clouds.len(), path.display());
+    Ok(())
+}
+
+/// A version 1.0 `.npy` header for a C-ordered little-endian float32 array of `shape`, padded so
+/// that the data starts at a multiple of 64 bytes (the format's rule).
+fn npy_header(shape: &[usize]) -> Vec<u8> {
+    let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
+    let shape = if dims.len() == 1 { format!("({},)", dims[0]) } else { format!("({})", dims.join(", ")) };
+    let mut dict = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
+    let unpadded = 10 + dict.len() + 1;
+    dict.push_str(&" ".repeat(unpadded.next_multiple_of(64) - unpadded));
+    dict.push('\n');
+    let mut header = b"\x93NUMPY\x01\x00".to_vec();
+    header.extend_from_slice(&(dict.len() as u16).to_le_bytes());
+    header.extend_from_slice(dict.as_bytes());
+    header
+}

@@ -206,12 +206,15 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
     without_truth(&with, &without);
     let plots = dir.path().join("plots");
     let states_file = dir.path().join("states.jsonl");
+    let clouds_file = dir.path().join("clouds.npy");
     let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
         .current_dir(repo())
         .args(["evaluate", "--config", "config/replay.toml", "--out", "-", "--plots"])
         .arg(&plots)
         .arg("--states")
         .arg(&states_file)
+        .arg("--clouds")
+        .arg(&clouds_file)
         .arg(&with)
         .arg(&without)
         .output()
@@ -325,6 +328,32 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
     let subjects: std::collections::BTreeSet<&str> =
         lines.iter().filter_map(|l| l["truth"]["subject"].as_str()).collect();
     assert_eq!(subjects.len(), 2, "both subjects' frames carry their subject");
+    // --clouds: the encoder's N_p points of every state, in --states' order, as one .npy array.
+    let (shape, values) = read_npy_f32(&clouds_file);
+    assert_eq!(shape, vec![lines.len(), 256, 3], "states x N_p x 3");
+    assert_eq!(values.len(), lines.len() * 256 * 3);
+    assert!(values.iter().all(|v| v.is_finite() && v.abs() < 2.0), "centred, in model units");
+    for (cloud, line) in values.chunks(256 * 3).zip(&lines) {
+        let spread = cloud.iter().map(|v| v.abs()).fold(0.0f32, f32::max);
+        assert!(spread > 0.05, "a real cloud, not padding: {}", line["state"]["sequence"]);
+    }
+}
+
+/// A NumPy .npy file of little-endian float32 (version 1.0 header): its shape and its values.
+fn read_npy_f32(path: &std::path::Path) -> (Vec<usize>, Vec<f32>) {
+    let bytes = std::fs::read(path).unwrap();
+    assert_eq!(&bytes[..8], b"\x93NUMPY\x01\x00", "a version 1.0 .npy file");
+    let length = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+    assert_eq!((10 + length) % 64, 0, "the data starts at a multiple of 64 bytes");
+    let header = std::str::from_utf8(&bytes[10..10 + length]).unwrap();
+    assert!(header.contains("'descr': '<f4'") && header.contains("'fortran_order': False"), "{header}");
+    let inner = header.split("'shape': (").nth(1).unwrap().split(')').next().unwrap();
+    let shape = inner.split(',').filter(|d| !d.trim().is_empty()).map(|d| d.trim().parse().unwrap()).collect();
+    let values = bytes[10 + length..]
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    (shape, values)
 }
 
 #[test]
