@@ -20,10 +20,18 @@ frames, and reports that pair on the `--report` files (which nothing is chosen o
   both other sets (bench/tracking.sh fit-N). `--directions` and `--ridge` take comma-separated
   lists: each pair is a variant, and the one that finds the most on `--choice` (then the fewest
   false) is named.
+- with `discriminant`, `hetero`: the same projected code with a variance per frame and direction,
+  log-linear in what the node knows of the frame (points kept and received, heading confidence,
+  the yaw copies' scatter, the encoder's mean log-variances of z_I and z_E), fitted by maximum
+  likelihood on the `--fit` files;
+- with `discriminant`, `step`: the same projected code through a detector of steps (the mean of
+  the last few frames against the frames before them) instead of the CUSUM, which slow wander
+  within a subject does not accumulate in; its window, reference length and threshold are chosen
+  like the CUSUM's threshold and drift.
 
     .venv/bin/python bench/change_detector.py --choice A-states.jsonl,... --report C-states.jsonl,... \
         [--fit F-states.jsonl,...] [--fit-input x_c] [--directions 5] [--ridge 0.03] \
-        [--variants shipped,view,discriminant] [--budget 0.6] [--front]
+        [--variants shipped,view,discriminant[,hetero,step]] [--budget 0.6] [--front]
 
 The states must be written with identity changes on z_I (`--set use_identity_projection=false`
 under a bundle with an identity projection), which the replica checks.
@@ -111,6 +119,46 @@ def end_on_degrees(state, truth):
     return math.degrees(min(relative, math.pi - relative))
 
 
+FEATURES = ["log points kept", "heading confidence", "yaw copies' scatter", "mean log z_I variance",
+            "mean log z_E variance", "log points received"]
+
+
+def frame_features(state):
+    """What the node knows of a frame besides its codes (the `hetero` variant's inputs)."""
+    raw = state["raw"]
+    return np.array([
+        math.log(max(state["points"]["kept"], 1)), raw["q_confidence"], raw["yaw_spread"],
+        float(np.mean(np.log(raw["z_i_var"]))), float(np.mean(np.log(raw["z_e_var"]))),
+        math.log(max(state["points"]["received"], 1)),
+    ])
+
+
+class StepDetector:
+    """The `step` variant: the mean of the last `window` frames against the mean of up to
+    `reference` frames before them (unit variances), a change when their scaled squared distance
+    exceeds the threshold; the new subject's frames begin the next reference. Slow wander moves
+    both windows together; a change between subjects is a step."""
+
+    def __init__(self, threshold, shape):
+        self.threshold, (self.window, self.reference) = threshold, shape
+        self.codes, self.start = [], 0
+
+    def update(self, mean, variance):
+        self.codes.append(mean)
+        t = len(self.codes) - 1
+        first = t - self.window + 1
+        if first - self.start < SWITCH:
+            return 0.0, False
+        begin = max(self.start, first - self.reference)
+        recent = np.mean(self.codes[first:], 0)
+        before = np.mean(self.codes[begin:first], 0)
+        distance = float(np.mean((recent - before) ** 2) / (1 / self.window + 1 / (first - begin)))
+        if distance > self.threshold:
+            self.start = first
+            return distance, True
+        return distance, False
+
+
 def load(path):
     """Per stream: frames (raw z_I mean, scaled variance, end-on angle, truth frame, subject,
     family, the node's distance) and the true change frames."""
@@ -137,6 +185,7 @@ def load(path):
                 family=r["truth"]["family"],
                 node_distance=r["state"]["shape"]["distance"],
                 x_c=np.array(r["x_c"]) if "x_c" in r else None,
+                features=frame_features(r["state"]),
             )
             for r in rows
         ]
@@ -159,12 +208,12 @@ def check_replica(streams, threshold, drift):
                 )
 
 
-def count(streams, threshold, drift, code):
+def count(streams, threshold, drift, code, detector=ShapeFilter):
     """(found, true changes, false, frames) of the detector on `code(frame) -> (mean, variance)`."""
     found = true = false = frames_seen = 0
     for _, frames, switches in streams:
-        detector = ShapeFilter(threshold, drift)
-        reported = [f["frame"] for f in frames if detector.update(*code(f))[1]]
+        detector_now = detector(threshold, drift)
+        reported = [f["frame"] for f in frames if detector_now.update(*code(f))[1]]
         used = [False] * len(reported)
         for k, t in enumerate(switches):
             end = min(t + TOLERANCE, (switches[k + 1] - 1) if k + 1 < len(switches) else t + TOLERANCE)
@@ -188,6 +237,34 @@ def discriminant(streams, directions, ridge, key):
             by_subject.setdefault((f["family"], f["subject"]), []).append(f[key])
     fitted = fit_projection(by_subject, directions, ridge)
     return fitted["matrix"], len(by_subject), fitted["between_within"]
+
+
+def frame_variances(fit, rows, key, iterations=50):
+    """The `hetero` variant's per-direction variance of the projected code, log-linear in the
+    frame's FEATURES (standardised), fitted by maximum likelihood (a Gaussian about each fit
+    subject's mean code, Newton's method): (weights [directions, features + 1], centre, scale)."""
+    by_subject = {}
+    for _, frames, _ in fit:
+        for f in frames:
+            by_subject.setdefault((f["family"], f["subject"]), []).append(f)
+    features, squares = [], []
+    for frames in by_subject.values():
+        codes = np.stack([rows @ f[key] for f in frames])
+        squares.append((codes - codes.mean(0)) ** 2)
+        features += [f["features"] for f in frames]
+    features, squares = np.array(features), np.concatenate(squares)
+    centre, scale = features.mean(0), features.std(0) + 1e-9
+    design = np.c_[(features - centre) / scale, np.ones(len(features))]
+    weights = []
+    for square in squares.T:
+        w = np.zeros(design.shape[1])
+        w[-1] = math.log(square.mean())
+        for _ in range(iterations):
+            ratio = square * np.exp(-(design @ w))
+            hessian = (design * ratio[:, None]).T @ design + 1e-6 * np.eye(len(w))
+            w -= np.linalg.solve(hessian, design.T @ (1 - ratio))
+        weights.append(w)
+    return np.array(weights), centre, scale
 
 
 def main():
@@ -216,14 +293,14 @@ def main():
     plain_grid = list(itertools.product([10, 6, 4, 3], [3.5, 3.0, 2.5, 2.25, 2.0, 1.75]))
     names = args.variants.split(",")
     if "shipped" in names:
-        variants["shipped"] = (lambda f: (f["mean"], f["variance"]), plain_grid)
+        variants["shipped"] = (lambda f: (f["mean"], f["variance"]), plain_grid, ShapeFilter)
     if "view" in names:
         widen = args.view_widen
 
         def view(f):
             return f["mean"], f["variance"] * (1.0 + (widen - 1.0) * max(0.0, (30.0 - f["end_on"]) / 30.0))
 
-        variants[f"view (x{widen:g} end-on)"] = (view, plain_grid)
+        variants[f"view (x{widen:g} end-on)"] = (view, plain_grid, ShapeFilter)
     if "discriminant" in names:
         if not args.fit:
             sys.exit("the discriminant variant needs --fit states files (apart from --choice and --report)")
@@ -238,10 +315,24 @@ def main():
             name = f"discriminant of {args.fit_input} ({directions} directions, ridge {ridge:g})"
             print(f"{name}: {subjects} subjects fitted; between/within ratio along its directions {np.round(values, 2)}")
             unit = np.ones(len(rows))
-            variants[name] = (
-                lambda f, rows=rows, unit=unit: (rows @ f[key], unit),
-                list(itertools.product([20, 10, 6], [24.0, 16.0, 12.0, 9.0, 8.0, 7.0, 6.0, 5.0, 4.0, 3.0])),
-            )
+            cusum_grid = list(itertools.product([20, 10, 6], [24.0, 16.0, 12.0, 9.0, 8.0, 7.0, 6.0, 5.0, 4.0, 3.0]))
+            variants[name] = (lambda f, rows=rows, unit=unit: (rows @ f[key], unit), cusum_grid, ShapeFilter)
+            if "hetero" in names:
+                weights, centre, scale = frame_variances(fit, rows, key)
+                print(f"  hetero: log-variance per direction from {', '.join(FEATURES)} (standardised): "
+                      f"{np.round(weights[:, :-1], 2).tolist()}")
+
+                def hetero(f, rows=rows, weights=weights, centre=centre, scale=scale):
+                    return rows @ f[key], np.exp(weights @ np.r_[(f["features"] - centre) / scale, 1.0])
+
+                variants[f"{name}, hetero"] = (hetero, cusum_grid, ShapeFilter)
+            if "step" in names:
+                shapes = list(itertools.product([3, 5, 8], [15, 30, 60, 120]))
+                variants[f"{name}, step"] = (
+                    lambda f, rows=rows, unit=unit: (rows @ f[key], unit),
+                    list(itertools.product([4, 6, 8, 10, 12, 15, 20, 25, 30, 40], shapes)),
+                    StepDetector,
+                )
 
     choice_streams = [s for streams in choice.values() for s in streams]
     report_streams = [s for streams in report.values() for s in streams]
@@ -252,10 +343,10 @@ def main():
             f"{found}/{true} found, {false} false in {frames} frames = {1000 * false / frames:.2f} per 1,000"
         )
     chosen = {}
-    for name, (code, grid) in variants.items():
+    for name, (code, grid, detector) in variants.items():
         best = None
         for threshold, drift in grid:
-            found, true, false, frames = count(choice_streams, threshold, drift, code)
+            found, true, false, frames = count(choice_streams, threshold, drift, code, detector)
             if 1000 * false / frames <= args.budget and (best is None or (found, -false) > best[0]):
                 best = ((found, -false), threshold, drift, f"{found}/{true} found, {false} false in {frames} frames")
         if best is None:
@@ -263,10 +354,12 @@ def main():
             continue
         chosen[name] = best[0]
         _, threshold, drift, on_choice = best
-        print(f"\n{name}: chosen cusum_threshold {threshold}, cusum_drift {drift} ({on_choice} on --choice)")
+        settings = (f"threshold {threshold}, (window, reference) {drift}" if detector is StepDetector
+                    else f"cusum_threshold {threshold}, cusum_drift {drift}")
+        print(f"\n{name}: chosen {settings} ({on_choice} on --choice)")
         total = np.zeros(4, dtype=int)
         for path, streams in report.items():
-            figures = count(streams, threshold, drift, code)
+            figures = count(streams, threshold, drift, code, detector)
             total += figures
             print(f"  {path}: {figures[0]}/{figures[1]} found, {figures[2]} false")
         print(
@@ -275,17 +368,18 @@ def main():
         )
         if args.front:
             points = []
-            for h, k in grid:
-                found, _, false, _ = count(report_streams, h, k, code)
-                points.append((false, -found, h, k))
+            for index, (h, k) in enumerate(grid):
+                found, _, false, _ = count(report_streams, h, k, code, detector)
+                points.append((false, -found, index))
             points.sort()
             front, most = [], -1
-            for false, minus_found, h, k in points:
+            for false, minus_found, index in points:
                 if -minus_found > most:
                     most = -minus_found
-                    front.append(f"{most} found at {false} false (h {h:g}, k {k:g})")
+                    front.append(f"{most} found at {false} false ({grid[index][0]:g}, {grid[index][1]})")
             print("  report trade-off: " + "; ".join(front))
-    discriminants = {name: score for name, score in chosen.items() if name.startswith("discriminant")}
+    discriminants = {name: score for name, score in chosen.items()
+                     if name.startswith("discriminant") and not name.endswith(("hetero", "step"))}
     if len(discriminants) > 1:
         print(f"\nthe discriminant that finds the most on --choice (then the fewest false): "
               f"{max(discriminants, key=discriminants.get)}")
