@@ -239,6 +239,33 @@ def discriminant(streams, directions, ridge, key):
     return fitted["matrix"], len(by_subject), fitted["between_within"]
 
 
+def choose(streams, grid, code, detector=ShapeFilter, budget=0.6):
+    """The grid point that finds the most changes with at most `budget` false per 1,000 frames
+    (then the fewest false): (threshold, drift, (found, true, false, frames)), or None."""
+    best = None
+    for threshold, drift in grid:
+        figures = count(streams, threshold, drift, code, detector)
+        found, _, false, frames = figures
+        if 1000 * false / frames <= budget and (best is None or (found, -false) > (best[2][0], -best[2][2])):
+            best = (threshold, drift, figures)
+    return best
+
+
+def trade_off(streams, grid, code, detector=ShapeFilter):
+    """The found / false trade-off over the grid: (found, false, grid point) for each grid point
+    that finds more than every point with fewer false changes."""
+    points = []
+    for index, (threshold, drift) in enumerate(grid):
+        found, _, false, _ = count(streams, threshold, drift, code, detector)
+        points.append((false, -found, index))
+    front, most = [], -1
+    for false, minus_found, index in sorted(points):
+        if -minus_found > most:
+            most = -minus_found
+            front.append((most, false, grid[index]))
+    return front
+
+
 def frame_variances(fit, rows, key, iterations=50):
     """The `hetero` variant's per-direction variance of the projected code, log-linear in the
     frame's FEATURES (standardised), fitted by maximum likelihood (a Gaussian about each fit
@@ -344,19 +371,15 @@ def main():
         )
     chosen = {}
     for name, (code, grid, detector) in variants.items():
-        best = None
-        for threshold, drift in grid:
-            found, true, false, frames = count(choice_streams, threshold, drift, code, detector)
-            if 1000 * false / frames <= args.budget and (best is None or (found, -false) > best[0]):
-                best = ((found, -false), threshold, drift, f"{found}/{true} found, {false} false in {frames} frames")
+        best = choose(choice_streams, grid, code, detector, args.budget)
         if best is None:
             print(f"{name}: nothing on the grid keeps within {args.budget} false per 1,000 frames on --choice")
             continue
-        chosen[name] = best[0]
-        _, threshold, drift, on_choice = best
+        threshold, drift, (found, true, false, frames) = best
+        chosen[name] = (found, -false)
         settings = (f"threshold {threshold}, (window, reference) {drift}" if detector is StepDetector
                     else f"cusum_threshold {threshold}, cusum_drift {drift}")
-        print(f"\n{name}: chosen {settings} ({on_choice} on --choice)")
+        print(f"\n{name}: chosen {settings} ({found}/{true} found, {false} false in {frames} frames on --choice)")
         total = np.zeros(4, dtype=int)
         for path, streams in report.items():
             figures = count(streams, threshold, drift, code, detector)
@@ -367,17 +390,8 @@ def main():
             f"= {1000 * total[2] / total[3]:.2f} per 1,000"
         )
         if args.front:
-            points = []
-            for index, (h, k) in enumerate(grid):
-                found, _, false, _ = count(report_streams, h, k, code, detector)
-                points.append((false, -found, index))
-            points.sort()
-            front, most = [], -1
-            for false, minus_found, index in points:
-                if -minus_found > most:
-                    most = -minus_found
-                    front.append(f"{most} found at {false} false ({grid[index][0]:g}, {grid[index][1]})")
-            print("  report trade-off: " + "; ".join(front))
+            front = trade_off(report_streams, grid, code, detector)
+            print("  report trade-off: " + "; ".join(f"{found} found at {false} false ({h:g}, {k})" for found, false, (h, k) in front))
     discriminants = {name: score for name, score in chosen.items()
                      if name.startswith("discriminant") and not name.endswith(("hetero", "step"))}
     if len(discriminants) > 1:

@@ -160,33 +160,22 @@ def replay(label, by_subject, key, choice, report):
     def code(f):
         return f["projected"], unit
 
-    best = None
-    for h, k in GRID:
-        found, true, false, frames = change_detector.count(choice, h, k, code)
-        if 1000 * false / frames <= 0.6 and (best is None or (found, -false) > best[0]):
-            best = ((found, -false), h, k, f"{found}/{true} found, {false} false")
+    best = change_detector.choose(choice, GRID, code)
     everything = [s for streams in report.values() for s in streams]
     print(f"\n{label}: between/within ratios {np.round(fitted['between_within'], 1)}")
     if best is None:
         print("  nothing on the grid keeps within 0.6 false per 1,000 frames on --choice")
     else:
-        _, h, k, on_choice = best
+        h, k, (found, true, false, _) = best
+        on_choice = f"{found}/{true} found, {false} false"
         found, true, false, frames = change_detector.count(everything, h, k, code)
         idle = sum(change_detector.count(report[n], h, k, code)[2] for n in report if n.startswith(("idle", "still")))
         pooled = [change_detector.count(report[n], h, k, code) for n in ("holdout", "final") if n in report]
         print(f"  chosen threshold {h}, drift {k} ({on_choice} on --choice); --report {found}/{true} found, "
               f"{false} false = {1000 * false / frames:.2f} per 1,000 (idle/still sets {idle}); holdout + final "
               f"{sum(p[0] for p in pooled)}/{sum(p[1] for p in pooled)} with {sum(p[2] for p in pooled)} false")
-    points = []
-    for h, k in GRID:
-        found, _, false, _ = change_detector.count(everything, h, k, code)
-        points.append((false, -found))
-    front, most = [], -1
-    for false, minus_found in sorted(points):
-        if -minus_found > most:
-            most = -minus_found
-            front.append(f"{most}@{false}")
-    print("  --report trade-off (found@false): " + " ".join(front))
+    front = change_detector.trade_off(everything, GRID, code)
+    print("  --report trade-off (found@false): " + " ".join(f"{found}@{false}" for found, false, _ in front))
 
 
 def main():
