@@ -47,7 +47,9 @@ pub struct Calibration {
 impl Calibration {
     /// The identity projection's rows as the tracker takes them (`[track]` identity_projection).
     pub fn identity_directions(&self) -> Option<std::sync::Arc<Vec<Vec<f32>>>> {
-        self.identity_projection.as_ref().map(|p| std::sync::Arc::new(p.matrix.clone()))
+        self.identity_projection
+            .as_ref()
+            .map(|p| std::sync::Arc::new(p.matrix.clone()))
     }
 }
 
@@ -154,7 +156,11 @@ impl Bundle {
     /// that the node still runs and the states to fit it again can be written.
     fn drop_stale_identity_projection(&mut self) {
         let m = &mut self.manifest;
-        let encoder = m.files.get("encoder.onnx").map(|e| e.sha256.clone()).unwrap_or_default();
+        let encoder = m
+            .files
+            .get("encoder.onnx")
+            .map(|e| e.sha256.clone())
+            .unwrap_or_default();
         if let Some(p) = &m.calibration.identity_projection {
             if !p.encoder_sha256.eq_ignore_ascii_case(&encoder) {
                 log::warn!(
@@ -213,7 +219,11 @@ impl Bundle {
             } else if projection.matrix.is_empty() || projection.matrix.len() > s.x_c {
                 Some(format!("has {} rows (1 to x_c's {})", projection.matrix.len(), s.x_c))
             } else if let Some(row) = projection.matrix.iter().position(|row| row.len() != s.x_c) {
-                Some(format!("row {row} has {} weights, not x_c's {}", projection.matrix[row].len(), s.x_c))
+                Some(format!(
+                    "row {row} has {} weights, not x_c's {}",
+                    projection.matrix[row].len(),
+                    s.x_c
+                ))
             } else if projection.matrix.iter().flatten().any(|w| !w.is_finite()) {
                 Some("has a weight that is not finite".into())
             } else {

@@ -524,7 +524,10 @@ fn evaluate(args: EvaluateArgs) -> Result<()> {
     if let Some(folder) = plots {
         // The threshold of the space the pipeline's shape filters worked in (the bundle decides).
         let mut track = config.track.clone();
-        track.identity_projection = Bundle::load(&config.model.bundle)?.manifest.calibration.identity_directions();
+        track.identity_projection = Bundle::load(&config.model.bundle)?
+            .manifest
+            .calibration
+            .identity_directions();
         let threshold = match track.change_detector {
             gdvae_node::config::ChangeDetector::Cusum => Some(track.cusum().1 as f64),
             gdvae_node::config::ChangeDetector::Consecutive => None,

@@ -332,12 +332,11 @@ pub fn write_dataset(
         .map(|&(family, index, split)| {
             let subject_name = subject_id(family, index);
             let subject_seed = seeds::derive(spec.seed, &[family as u64, index as u64]);
-            let subject = Subject::draw(family, subject_seed, spec.target_vertices).map_err(|source| {
-                DatasetError::Subject {
+            let subject =
+                Subject::draw(family, subject_seed, spec.target_vertices).map_err(|source| DatasetError::Subject {
                     subject: subject_name.clone(),
                     source,
-                }
-            })?;
+                })?;
             let mut records = Vec::with_capacity(spec.poses_per_subject);
             for pose_index in 0..spec.poses_per_subject {
                 let seed = seeds::derive(spec.seed, &[family as u64, index as u64, pose_index as u64]);

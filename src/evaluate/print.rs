@@ -294,7 +294,10 @@ pub fn write_clouds(path: &Path, states: &[MatchedState]) -> anyhow::Result<()> 
         .collect::<anyhow::Result<_>>()?;
     let points = clouds.first().map_or(0, |c| c.len());
     if let Some((i, c)) = clouds.iter().enumerate().find(|(_, c)| c.len() != points) {
-        anyhow::bail!("state {i} has {} points, the first {points}: one .npy array needs one N_p", c.len());
+        anyhow::bail!(
+            "state {i} has {} points, the first {points}: one .npy array needs one N_p",
+            c.len()
+        );
     }
     let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
     let mut out = std::io::BufWriter::new(file);
@@ -305,7 +308,11 @@ pub fn write_clouds(path: &Path, states: &[MatchedState]) -> anyhow::Result<()> 
         }
     }
     out.flush().with_context(|| format!("writing {}", path.display()))?;
-    eprintln!("evaluate: {} cloud(s) of {points} points in {}", clouds.len(), path.display());
+    eprintln!(
+        "evaluate: {} cloud(s) of {points} points in {}",
+        clouds.len(),
+        path.display()
+    );
     Ok(())
 }
 
@@ -313,7 +320,11 @@ pub fn write_clouds(path: &Path, states: &[MatchedState]) -> anyhow::Result<()> 
 /// that the data starts at a multiple of 64 bytes (the format's rule).
 fn npy_header(shape: &[usize]) -> Vec<u8> {
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
-    let shape = if dims.len() == 1 { format!("({},)", dims[0]) } else { format!("({})", dims.join(", ")) };
+    let shape = if dims.len() == 1 {
+        format!("({},)", dims[0])
+    } else {
+        format!("({})", dims.join(", "))
+    };
     let mut dict = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
     let unpadded = 10 + dict.len() + 1;
     dict.push_str(&" ".repeat(unpadded.next_multiple_of(64) - unpadded));

@@ -160,7 +160,9 @@ impl TrackSettings {
     /// The identity directions the shape filter works on: the bundle's, unless
     /// `use_identity_projection` is off (None: on z_I).
     pub fn identity_directions(&self) -> Option<&IdentityDirections> {
-        self.identity_projection.as_ref().filter(|_| self.use_identity_projection)
+        self.identity_projection
+            .as_ref()
+            .filter(|_| self.use_identity_projection)
     }
 
     /// The CUSUM's drift and threshold in the space the shape filter works in.

@@ -332,10 +332,17 @@ fn evaluate_on_a_short_recording_counts_exactly_what_it_holds() {
     let (shape, values) = read_npy_f32(&clouds_file);
     assert_eq!(shape, vec![lines.len(), 256, 3], "states x N_p x 3");
     assert_eq!(values.len(), lines.len() * 256 * 3);
-    assert!(values.iter().all(|v| v.is_finite() && v.abs() < 2.0), "centred, in model units");
+    assert!(
+        values.iter().all(|v| v.is_finite() && v.abs() < 2.0),
+        "centred, in model units"
+    );
     for (cloud, line) in values.chunks(256 * 3).zip(&lines) {
         let spread = cloud.iter().map(|v| v.abs()).fold(0.0f32, f32::max);
-        assert!(spread > 0.05, "a real cloud, not padding: {}", line["state"]["sequence"]);
+        assert!(
+            spread > 0.05,
+            "a real cloud, not padding: {}",
+            line["state"]["sequence"]
+        );
     }
 }
 
@@ -346,9 +353,16 @@ fn read_npy_f32(path: &std::path::Path) -> (Vec<usize>, Vec<f32>) {
     let length = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
     assert_eq!((10 + length) % 64, 0, "the data starts at a multiple of 64 bytes");
     let header = std::str::from_utf8(&bytes[10..10 + length]).unwrap();
-    assert!(header.contains("'descr': '<f4'") && header.contains("'fortran_order': False"), "{header}");
+    assert!(
+        header.contains("'descr': '<f4'") && header.contains("'fortran_order': False"),
+        "{header}"
+    );
     let inner = header.split("'shape': (").nth(1).unwrap().split(')').next().unwrap();
-    let shape = inner.split(',').filter(|d| !d.trim().is_empty()).map(|d| d.trim().parse().unwrap()).collect();
+    let shape = inner
+        .split(',')
+        .filter(|d| !d.trim().is_empty())
+        .map(|d| d.trim().parse().unwrap())
+        .collect();
     let values = bytes[10 + length..]
         .chunks_exact(4)
         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))

@@ -113,17 +113,26 @@ fn altered_or_unsupported_bundles_are_refused_with_the_reason() {
     let width = calibrated["sizes"]["x_c"].as_u64().unwrap() as usize;
     let encoder = calibrated["files"]["encoder.onnx"]["sha256"].clone();
     for (projection, expected) in [
-        (serde_json::json!({ "input": "z_I", "matrix": [vec![0.0; width]], "encoder_sha256": encoder }), "reads 'z_I'"),
+        (
+            serde_json::json!({ "input": "z_I", "matrix": [vec![0.0; width]], "encoder_sha256": encoder }),
+            "reads 'z_I'",
+        ),
         (
             serde_json::json!({ "input": "x_c", "matrix": [vec![0.0; width], vec![0.0; width - 1]], "encoder_sha256": encoder }),
             "row 1 has",
         ),
-        (serde_json::json!({ "input": "x_c", "matrix": [], "encoder_sha256": encoder }), "has 0 rows"),
+        (
+            serde_json::json!({ "input": "x_c", "matrix": [], "encoder_sha256": encoder }),
+            "has 0 rows",
+        ),
     ] {
         calibrated["calibration"] = serde_json::json!({ "z_I_variance_scale": 1.0, "identity_projection": projection });
         std::fs::write(dir.path().join("manifest.json"), calibrated.to_string()).unwrap();
         let error = Bundle::load(dir.path()).unwrap_err().to_string();
-        assert!(error.contains("identity_projection") && error.contains(expected), "{error} lacks '{expected}'");
+        assert!(
+            error.contains("identity_projection") && error.contains(expected),
+            "{error} lacks '{expected}'"
+        );
     }
     // Fitted on another encoder: the bundle still loads, without it (identity changes on z_I).
     calibrated["calibration"] = serde_json::json!({ "z_I_variance_scale": 1.0, "identity_projection":
@@ -133,7 +142,12 @@ fn altered_or_unsupported_bundles_are_refused_with_the_reason() {
     assert!(loaded.manifest.calibration.identity_projection.is_none());
     calibrated["calibration"]["identity_projection"]["encoder_sha256"] = encoder.clone();
     std::fs::write(dir.path().join("manifest.json"), calibrated.to_string()).unwrap();
-    assert!(Bundle::load(dir.path()).unwrap().manifest.calibration.identity_projection.is_some());
+    assert!(Bundle::load(dir.path())
+        .unwrap()
+        .manifest
+        .calibration
+        .identity_projection
+        .is_some());
     std::fs::write(dir.path().join("manifest.json"), "{ not json").unwrap();
     assert!(Bundle::load(dir.path())
         .unwrap_err()
@@ -201,7 +215,10 @@ fn inspect_model_shows_the_bundles_calibration() {
         stdout.contains(&format!("calibration: z_I variances x {scale} ")),
         "{stdout}"
     );
-    assert!(stdout.contains("calibration: identity changes on z_I (no identity projection)"), "{stdout}");
+    assert!(
+        stdout.contains("calibration: identity changes on z_I (no identity projection)"),
+        "{stdout}"
+    );
     // The default bundle detects identity changes on its identity projection.
     let default = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/bundles/h200-fo-pose");
     let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))

@@ -887,5 +887,8 @@ fn under_an_identity_projection_a_change_only_x_c_shows_is_found_and_z_i_is_stil
         .all(|(mean, lv, x_c)| plain.update_coded(mean, lv, x_c).change.is_none()));
     // The published z_I is still the fused z_I.
     let error = largest_difference(filter.mean(), &z_i);
-    assert!(error < 0.1, "fused z_I off by {error} (its noise: 0.05 a frame, averaged over a few)");
+    assert!(
+        error < 0.1,
+        "fused z_I off by {error} (its noise: 0.05 a frame, averaged over a few)"
+    );
 }
