@@ -266,7 +266,7 @@ def trade_off(streams, grid, code, detector=ShapeFilter):
     return front
 
 
-def frame_variances(fit, rows, key, iterations=50):
+def frame_variances(fit, rows, key, used=None, iterations=50):
     """The `hetero` variant's per-direction variance of the projected code, log-linear in the
     frame's FEATURES (standardised), fitted by maximum likelihood (a Gaussian about each fit
     subject's mean code, Newton's method): (weights [directions, features + 1], centre, scale)."""
@@ -280,7 +280,10 @@ def frame_variances(fit, rows, key, iterations=50):
         squares.append((codes - codes.mean(0)) ** 2)
         features += [f["features"] for f in frames]
     features, squares = np.array(features), np.concatenate(squares)
+    if used is not None:  # the features left out weigh nothing
+        features = features * np.asarray(used, float)
     centre, scale = features.mean(0), features.std(0) + 1e-9
+    scale[scale < 1e-6] = 1.0
     design = np.c_[(features - centre) / scale, np.ones(len(features))]
     weights = []
     for square in squares.T:
@@ -302,6 +305,7 @@ def main():
     parser.add_argument("--variants", default="shipped,view,discriminant")
     parser.add_argument("--budget", type=float, default=0.6, help="false changes per 1,000 frames allowed on --choice")
     parser.add_argument("--view-widen", type=float, default=4.0)
+    parser.add_argument("--hetero-without", default="", help="FEATURES the hetero variant leaves out (comma-separated names)")
     parser.add_argument("--fit-input", default="x_c", choices=["x_c", "z_I"], help="what the discriminant projects")
     parser.add_argument("--directions", default="5", help="comma-separated")
     parser.add_argument("--ridge", default="0.03", help="comma-separated")
@@ -310,6 +314,9 @@ def main():
     parser.add_argument("--front", action="store_true", help="also print each variant's trade-off on --report")
     args = parser.parse_args()
 
+    unknown = [name for name in args.hetero_without.split(",") if name and name not in FEATURES]
+    if unknown:
+        sys.exit(f"--hetero-without {unknown}: the features are {FEATURES}")
     choice = {p: load(p) for p in args.choice.split(",")}
     report = {p: load(p) for p in args.report.split(",")}
     for streams in [*choice.values(), *report.values()]:
@@ -345,8 +352,10 @@ def main():
             cusum_grid = list(itertools.product([20, 10, 6], [24.0, 16.0, 12.0, 9.0, 8.0, 7.0, 6.0, 5.0, 4.0, 3.0]))
             variants[name] = (lambda f, rows=rows, unit=unit: (rows @ f[key], unit), cusum_grid, ShapeFilter)
             if "hetero" in names:
-                weights, centre, scale = frame_variances(fit, rows, key)
-                print(f"  hetero: log-variance per direction from {', '.join(FEATURES)} (standardised): "
+                used = [name not in args.hetero_without.split(",") for name in FEATURES]
+                weights, centre, scale = frame_variances(fit, rows, key, used)
+                print(f"  hetero: log-variance per direction from {', '.join(f for f, u in zip(FEATURES, used) if u)} (standardised; "
+                      f"every feature's weight, 0 for those left out): "
                       f"{np.round(weights[:, :-1], 2).tolist()}")
 
                 def hetero(f, rows=rows, weights=weights, centre=centre, scale=scale):
