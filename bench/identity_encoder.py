@@ -189,6 +189,10 @@ def main():
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(2)
+    held = {n for key in ("whiten", "choice", "report") for n in getattr(args, key).split(",")}
+    if held & set(args.train.split(",")):
+        sys.exit(f"--train shares {sorted(held & set(args.train.split(',')))} with --whiten/--choice/--report: "
+                 f"the encoder must not have seen the subjects it is measured on")
     sets = {n: load(args.data, n) for key in ("train", "whiten", "choice", "report") for n in getattr(args, key).split(",")}
 
     train_x, train_frames = [], []
