@@ -161,10 +161,12 @@ class StepDetector:
 
 def load(path):
     """Per stream: frames (raw z_I mean, scaled variance, end-on angle, truth frame, subject,
-    family, the node's distance) and the true change frames."""
+    family, the node's distance, raw heading, x_c, the frame's features, its line in the file) and
+    the true change frames."""
     streams = {}
-    for line in open(path):
+    for number, line in enumerate(open(path)):
         row = json.loads(line)
+        row["line"] = number
         streams.setdefault(row["state"]["stream"], []).append(row)
     out = []
     for stream, rows in streams.items():
@@ -184,6 +186,8 @@ def load(path):
                 subject=r["truth"]["subject"],
                 family=r["truth"]["family"],
                 node_distance=r["state"]["shape"]["distance"],
+                yaw=r["state"]["raw"]["yaw"],
+                line=r["line"],
                 x_c=np.array(r["x_c"]) if "x_c" in r else None,
                 features=frame_features(r["state"]),
             )

@@ -16,7 +16,7 @@ frames), reported on `--report` with the whole found / false trade-off there.
 
     .venv/bin/python bench/identity_encoder.py --train fit-1,...,fit-12 --whiten fit-13,...,fit-16 \
         --choice tune,stand-tune,extra-1,idle-tune,still-tune --report holdout,final,... \
-        [--data /work/data/clouds] [--input cloud|x_c] [--epochs 12] [--seed 0]
+        --data FOLDER [--input cloud|x_c] [--epochs 12] [--seed 0]
 
 The states must be written with `--set use_identity_projection=false` (the replica checks the
 node's z_I detector, not used here, so this is not checked again). Prints the encoder's training
@@ -26,7 +26,6 @@ false changes, `holdout` + `final` pooled, and the trade-off ("found@false").
 """
 import argparse
 import itertools
-import json
 import math
 import pathlib
 import sys
@@ -45,27 +44,13 @@ GRID = list(itertools.product([30, 20, 14, 10, 6], [24.0, 16.0, 12.0, 9.0, 8.0, 
 
 
 def load(folder: pathlib.Path, name: str):
-    """(clouds [states, N_p, 3], streams as change_detector.count takes them, with each frame's
-    row in the clouds, raw heading and x_c)."""
+    """(clouds [states, N_p, 3], the states' streams as change_detector.load reads them; each
+    frame's `line` is its row in the clouds)."""
     clouds = np.load(folder / f"{name}-clouds.npy")
-    rows = [json.loads(line) for line in open(folder / f"{name}-states.jsonl")]
-    if len(rows) != len(clouds):
-        sys.exit(f"{name}: {len(rows)} states but {len(clouds)} clouds: write both with one evaluate run")
-    by_stream = {}
-    for i, row in enumerate(rows):
-        if row["truth"] is None:
-            sys.exit(f"{name}: state {i} has no ground truth (a sim recording's states are needed)")
-        by_stream.setdefault(row["state"]["stream"], []).append((row["state"]["sequence"], i))
-    streams = []
-    for stream, order in by_stream.items():
-        frames = [
-            dict(row=i, yaw=rows[i]["state"]["raw"]["yaw"], x_c=np.asarray(rows[i]["x_c"], np.float32),
-                 frame=rows[i]["truth"]["frame"], subject=rows[i]["truth"]["subject"],
-                 family=rows[i]["truth"]["family"])
-            for _, i in sorted(order)
-        ]
-        switches = [b["frame"] for a, b in zip(frames, frames[1:]) if a["subject"] != b["subject"]]
-        streams.append((f"{name}:{stream}", frames, switches))
+    streams = change_detector.load(str(folder / f"{name}-states.jsonl"))
+    states = sum(len(frames) for _, frames, _ in streams)
+    if states != len(clouds):
+        sys.exit(f"{name}: {states} states but {len(clouds)} clouds: write both with one evaluate run")
     return clouds, streams
 
 
@@ -80,8 +65,8 @@ def inputs(clouds, streams, kind):
     """The encoder's input for every frame of `streams` (in their order) and the frames."""
     frames = [f for _, fs, _ in streams for f in fs]
     if kind == "x_c":
-        return np.stack([f["x_c"] for f in frames]), frames
-    rows = [f["row"] for f in frames]
+        return np.stack([f["x_c"] for f in frames]).astype(np.float32), frames
+    rows = [f["line"] for f in frames]
     return turned_back(clouds[rows], np.array([f["yaw"] for f in frames])), frames
 
 
@@ -182,8 +167,8 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     for name in ("train", "whiten", "choice", "report"):
         parser.add_argument(f"--{name}", required=True, help="set names, comma-separated")
-    parser.add_argument("--data", default="/work/data/clouds", type=pathlib.Path,
-                        help="folder of SET-states.jsonl and SET-clouds.npy")
+    parser.add_argument("--data", required=True, type=pathlib.Path,
+                        help="folder of SET-states.jsonl and SET-clouds.npy (evaluate --states / --clouds)")
     parser.add_argument("--input", default="cloud", choices=["cloud", "x_c"])
     parser.add_argument("--epochs", type=int, default=12)
     parser.add_argument("--seed", type=int, default=0)
