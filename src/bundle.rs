@@ -87,6 +87,10 @@ pub struct ModelInfo {
     /// exported before it existed.
     #[serde(default)]
     pub pose_encoder: bool,
+    /// Whether z_I's encoder reads a body encoder's code (the kit's body stage); absent in bundles
+    /// exported before it existed.
+    #[serde(default)]
+    pub body_encoder: bool,
 }
 
 #[derive(Debug, Clone, Copy, Deserialize, serde::Serialize)]

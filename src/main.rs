@@ -423,13 +423,18 @@ fn inspect_model(bundle: &Path, load: bool, onnxruntime: Option<&Path>) -> Resul
     let m = &bundle.manifest;
     println!("bundle {} (schema {})", bundle.folder.display(), m.schema_version);
     println!(
-        "model: {} regime, {} autoencoder, {}, recipe {}{}",
+        "model: {} regime, {} autoencoder, {}, recipe {}{}{}",
         m.model.regime,
         m.model.ae_type,
         m.model.supervision,
         m.model.recipe,
         if m.model.pose_encoder {
             ", z_E from a pose encoder"
+        } else {
+            ""
+        },
+        if m.model.body_encoder {
+            ", z_I from a body encoder"
         } else {
             ""
         }

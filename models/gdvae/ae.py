@@ -63,6 +63,13 @@ class AEConfig:
     # E_p's per-point widths; None: E_x's (`shape_hidden`), and E_p starts from E_x's weights.
     # Narrower widths cost the node less encoder CPU; E_p then starts from random weights.
     pose_hidden: tuple[int, ...] | None = None
+    # Not in the paper either: E_b, a third encoder in E_p's frame, trained on the sim's body-shape
+    # parameters beta (pose.py), so that the VAE's z_I reads a code that holds the body and not the
+    # pose: x_c, a reconstruction code, holds beta weakly (a ridge from x_c recovers R2 0.2-0.3 of it
+    # on fresh subjects; models/EXPERIMENTS.md, "A body encoder for z_I"). Its code x_b has x_c's size.
+    body_encoder: bool = False
+    # E_b's per-point widths (from random weights).
+    body_hidden: tuple[int, ...] = (32, 64, 128)
 
     def validate(self) -> None:
         if self.kind not in ("ftl", "std"):
@@ -108,6 +115,7 @@ class Autoencoder(nn.Module):
         self.shape_encoder = PointNet(config.shape_hidden, config.latent)
         self.pose_encoder = (PointNet(config.pose_hidden or config.shape_hidden, config.latent)
                              if config.pose_encoder else None)
+        self.body_encoder = PointNet(config.body_hidden, config.latent) if config.body_encoder else None
         k = config.decoder_width
         self.decoder = mlp(config.latent, (k, 2 * k, 4 * k), 3 * config.points)
 
@@ -135,6 +143,17 @@ class Autoencoder(nn.Module):
         if self.pose_encoder is None:
             return None
         return self.pose_encoder(rotate(points, rotation.transpose(-1, -2)))
+
+    def encode_body(self, points: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor | None:
+        """x_b: E_b's code of the points turned back by `rotation` (None without a body encoder)."""
+        if self.body_encoder is None:
+            return None
+        return self.body_encoder(rotate(points, rotation.transpose(-1, -2)))
+
+    def taught_codes(self, points: torch.Tensor, rotation: torch.Tensor) -> dict:
+        """The codes of the encoders taught the sim's truth, as the VAE's encode takes them:
+        {"x_p": E_p's or None, "x_b": E_b's or None}."""
+        return {"x_p": self.encode_pose(points, rotation), "x_b": self.encode_body(points, rotation)}
 
     def decode(self, x_c: torch.Tensor) -> torch.Tensor:
         return self.decoder(x_c).view(x_c.shape[0], -1, 3)

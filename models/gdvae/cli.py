@@ -95,12 +95,14 @@ def train_command(args) -> int:
     log.info("%s: %d meshes (%d train), scale %.4f model units per input unit", args.dataset, len(dataset.meshes),
              len(dataset.indices("train")), dataset.scale)
     spectra = dataset_spectra(dataset, chosen.spectrum_count, SpectrumCache(Path(args.dataset) / ".spectra"))
-    pose_dataset = None
-    if args.pose_data:
-        if not chosen.ae.pose_encoder:
-            raise SystemExit("--pose-data is the pose stage's dataset: it goes with --set ae.pose_encoder=true")
-        pose_dataset = load_dataset(args.pose_data)
-        use_model_units(pose_dataset, chosen.model_units or dataset.scale)
+    taught = {}  # the pose and body stages' own datasets
+    for flag, path, stage, needed in (("--pose-data", args.pose_data, "pose", chosen.ae.pose_encoder),
+                                      ("--body-data", args.body_data, "body", chosen.ae.body_encoder)):
+        if path:
+            if not needed:
+                raise SystemExit(f"{flag} is the {stage} stage's dataset: it goes with --set ae.{stage}_encoder=true")
+            taught[stage] = load_dataset(path)
+            use_model_units(taught[stage], chosen.model_units or dataset.scale)
     if args.rebuild_bank and not args.init_from:
         raise SystemExit("--rebuild-bank goes with --init-from (a fresh run builds its own bank)")
     if args.continue_ae and not args.init_from:
@@ -112,7 +114,8 @@ def train_command(args) -> int:
                          vae_seconds=None if args.vae_minutes is None else 60.0 * args.vae_minutes)
     train(dataset, spectra, args.out, chosen, stop_after=args.stop_after, init_from=args.init_from,
           rebuild_bank=args.rebuild_bank, continue_ae=args.continue_ae, device=device, limits=limits,
-          loader_workers=args.loader_workers, pose_dataset=pose_dataset)
+          loader_workers=args.loader_workers, pose_dataset=taught.get("pose"),
+          body_dataset=taught.get("body"))
     log.info("training finished: %s", args.out)
     return 0
 
@@ -378,6 +381,9 @@ def main(argv=None) -> int:
     training.add_argument("--pose-data", metavar="DATASET",
                           help="with ae.pose_encoder: the pose stage learns from this sim dataset's training "
                                "meshes (many distinct poses) instead of DATASET's (default)")
+    training.add_argument("--body-data", metavar="DATASET",
+                          help="with ae.body_encoder: the body stage learns from this sim dataset's training "
+                               "meshes (many distinct subjects) instead of DATASET's (default)")
     training.add_argument("--limit", type=int, help="use only the first N meshes")
     training.add_argument("--device", default="cpu", help="torch device to train on: cpu (default), cuda, cuda:1")
     training.add_argument("--ae-minutes", type=float, metavar="M",

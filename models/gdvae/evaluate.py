@@ -29,7 +29,7 @@ def encode_all(ae, vae, clouds: torch.Tensor, rotations: torch.Tensor, spectra: 
         q = ae.encode_rotation(inputs)
         rotation = quaternion_to_matrix(q)
         x_c, _ = ae.encode_shape(inputs, rotation)
-        (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = vae.encode(q, x_c, ae.encode_pose(inputs, rotation))
+        (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = vae.encode(q, x_c, **ae.taught_codes(inputs, rotation))
         for key, value in zip(out, (q, x_c, mu_r, mu_e, mu_i, lv_r, lv_e, lv_i)):
             out[key].append(value)
     codes = {k: torch.cat(v) for k, v in out.items()}

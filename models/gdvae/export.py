@@ -39,7 +39,7 @@ class EncoderGraph(nn.Module):
         q = self.ae.encode_rotation(points)
         rotation = quaternion_to_matrix(q)
         x_c, _ = self.ae.encode_shape(points, rotation)
-        (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = self.vae.encode(q, x_c, self.ae.encode_pose(points, rotation))
+        (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = self.vae.encode(q, x_c, **self.ae.taught_codes(points, rotation))
         return q, x_c, mu_r, lv_r, mu_e, lv_e, mu_i, lv_i
 
 
@@ -133,7 +133,7 @@ def parity(ae, vae, folder: Path) -> float:
         canonical, decoded_q = torch.from_numpy(got["decoder.onnx"][0]), torch.from_numpy(got["decoder.onnx"][2])
         expected = {
             "encoder.onnx": [*EncoderGraph(ae, vae).eval()(points)[:2],
-                             *(value for pair in vae.encode(q, x_c, ae.encode_pose(points, quaternion_to_matrix(q)))
+                             *(value for pair in vae.encode(q, x_c, **ae.taught_codes(points, quaternion_to_matrix(q)))
                                for value in pair)],
             "decoder.onnx": [DecoderGraph(ae, vae).eval()(*latents)[0],
                              rotate(canonical, quaternion_to_matrix(decoded_q)),
@@ -193,6 +193,8 @@ def write_bundle(ae, vae, folder: str | Path, *, scale: float, recipe_name: str,
             "recipe": recipe_name,
             "pose_encoder": a.pose_encoder,
             **({"pose_hidden": list(a.pose_hidden)} if a.pose_encoder and a.pose_hidden else {}),
+            "body_encoder": a.body_encoder,
+            **({"body_hidden": list(a.body_hidden)} if a.body_encoder else {}),
         },
         "sizes": {"points": a.points, "spectrum": c.spectrum, "x_c": a.latent, "z_R": c.n_rotation,
                   "z_E": c.n_extrinsic, "z_I": c.n_intrinsic},
@@ -253,6 +255,10 @@ def model_card(manifest: dict) -> str:
            f"joint angles per family for {t['pose_stage']['iterations']} iterations on "
            f"{t['pose_stage']['train_meshes']} training meshes of {t['pose_stage']['dataset']}."]
           if t.get("pose_stage") else []),
+        *([f"z_I's encoder reads a body encoder's code: E_b, in the same frame, was taught the sim's body-shape "
+           f"parameters (beta) per family for {t['body_stage'].get('iterations', '?')} iterations on "
+           f"{t['body_stage'].get('train_meshes', '?')} training meshes of {t['body_stage'].get('dataset', '?')}."]
+          if t.get("body_stage") else []),
         f"Partial views: {partial:.0%} of the AE's input copies were the side a camera sees"
         f"{', as the depth camera renders it (self-occlusion, stereo noise)' if t.get('depth_camera_views') else ''} "
         "(the AE still reconstructs the whole surface)." if partial else "Partial views: none (whole surfaces only).",

@@ -72,8 +72,10 @@ def state_from_bundle(bundle: Path, ae: Autoencoder, vae: LatentVAE) -> tuple[di
         named.update(onnx_initializers(bundle / name)[0])
     convolutions = iter(folded_convolutions(encoder_values, encoder_nodes))
     ae_state = {}
-    # The order the encoder graph runs them in: encode_rotation, encode_shape, encode_pose.
-    for encoder in ("rotation_encoder", "shape_encoder", *(("pose_encoder",) if ae.pose_encoder is not None else ())):
+    # The order the encoder graph runs them in: encode_rotation, encode_shape, then the taught codes
+    # (encode_pose, encode_body).
+    taught = [name for name in ("pose_encoder", "body_encoder") if getattr(ae, name) is not None]
+    for encoder in ("rotation_encoder", "shape_encoder", *taught):
         module = getattr(ae, encoder)
         for index, layer in enumerate(module.shared):
             prefix = f"{encoder}.shared.{index}"
@@ -130,9 +132,12 @@ def architecture(manifest: dict, rotation_head: str):
                         supervised=model.get("supervision", "supervised") == "supervised",
                         full_rotations=manifest["units"].get("rotation_mode") == "so3",
                         pose_encoder=bool(model.get("pose_encoder", False)),
-                        pose_hidden=tuple(model["pose_hidden"]) if model.get("pose_hidden") else None)
+                        pose_hidden=tuple(model["pose_hidden"]) if model.get("pose_hidden") else None,
+                        body_encoder=bool(model.get("body_encoder", False)),
+                        **({"body_hidden": tuple(model["body_hidden"])} if model.get("body_hidden") else {}))
     chosen.vae = replace(chosen.vae, latent=sizes["x_c"], spectrum=sizes["spectrum"], n_extrinsic=sizes["z_E"],
-                         n_rotation=sizes["z_R"], pose_input=sizes["x_c"] if chosen.ae.pose_encoder else 0)
+                         n_rotation=sizes["z_R"], pose_input=sizes["x_c"] if chosen.ae.pose_encoder else 0,
+                         body_input=sizes["x_c"] if chosen.ae.body_encoder else 0)
     chosen.spectrum_count = sizes["spectrum"]
     chosen.model_units = manifest["units"]["model_units_per_metre"]  # what its AE was trained in
     for field, key in (("ae_iterations", "ae_iterations"), ("vae_iterations", "vae_iterations"),

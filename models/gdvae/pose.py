@@ -1,4 +1,5 @@
-"""The pose stage: the AE's pose encoder E_p taught the sim's pose, so that z_E has a pose to read.
+"""The taught stages: the AE's pose encoder E_p taught the sim's pose, so that z_E has a pose to
+read, and its body encoder E_b taught the sim's body shape (beta), so that z_I has one.
 
 Not in the paper, which has no labels. The STD shape encoder E_x must give the same code under any
 heading, and a cloud whose front and back the encoder cannot tell apart says little about which leg
@@ -9,7 +10,13 @@ the same way, and is trained to predict the top principal components of the sim'
 keeps E_p, and the VAE's z_E encoder reads its code x_p beside x_c (vae.py, `pose_input`). The
 node still runs the frozen encoders on unlabelled clouds.
 
-Runs between the AE stage and the code bank, with the AE frozen; resumable like the others.
+E_b is E_p's twin for z_I (not in the paper either): it reads the cloud in the same frame and is
+trained to predict each family's body-shape parameters beta (each mapped to [0, 1] by its family's
+range, then in units of its spread), and z_I's encoder reads its code x_b beside x_c (`body_input`).
+x_c, a reconstruction code, holds beta weakly; without labels the paper has only the spectrum for it.
+
+Each runs between the AE stage and the code bank (the pose stage first), with the AE frozen;
+resumable like the others.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .evaluate import normalised_beta
 from .geometry import quaternion_to_matrix, random_rotation_matrices, rotate
 
 log = logging.getLogger(__name__)
@@ -51,49 +59,99 @@ class PoseTargets:
             rows[members] = projected / (projected.std(0) + 1e-9)
             self.explained[name] = float((values[:components] ** 2).sum() / (values ** 2).sum())
         self.rows = torch.from_numpy(rows)
+        self.mask = torch.ones_like(self.rows)
+
+
+class BodyTargets:
+    """Per family, each body-shape parameter of beta mapped to [0, 1] by the family's range (the
+    dataset's `ranges`, as `evaluate` maps it for E_beta; the observed range where it has none), then centred
+    and in units of its spread over the training meshes. Families with fewer parameters are padded,
+    and `mask` says which columns are a family's own."""
+
+    def __init__(self, truths: list[dict], ranges: dict):
+        if not truths or any("beta" not in t or "family" not in t for t in truths):
+            raise ValueError("the body stage needs the sim's ground truth (beta and family) of every training mesh")
+        self.families = sorted({t["family"] for t in truths})
+        self.family = np.array([self.families.index(t["family"]) for t in truths])
+        self.components = max(len(t["beta"]) for t in truths)
+        rows = np.zeros((len(truths), self.components), np.float32)
+        mask = np.zeros_like(rows)
+        for f, name in enumerate(self.families):
+            members = np.nonzero(self.family == f)[0]
+            beta = np.array([truths[i]["beta"] for i in members], np.float64)
+            scaled = normalised_beta(beta, name, ranges)
+            spread = scaled.std(0)
+            if len(members) < 2 or not (spread > 0).any():
+                raise ValueError(f"the body stage needs training meshes of family {name!r} whose beta differs "
+                                 f"(got {len(members)})")
+            width = beta.shape[1]
+            rows[members, :width] = np.where(spread > 0, (scaled - scaled.mean(0)) / np.maximum(spread, 1e-12), 0.0)
+            mask[members, :width] = spread > 0
+        self.rows, self.mask = torch.from_numpy(rows), torch.from_numpy(mask)
 
 
 def train_pose(ae, sampler, truths: list[dict], chosen, state: dict, save, progress, device, stages) -> None:
     """Trains `ae.pose_encoder` (from E_x's weights when it has E_x's widths, else from random
-    weights) on views of the training meshes
-    as the code bank draws them (`chosen.bank_view_share()` camera views), each turned by a random
-    yaw and turned back by E_r's estimate."""
+    weights) on views of the training meshes as the code bank draws them (`chosen.bank_view_share()`
+    camera views), each turned by a random yaw and turned back by E_r's estimate."""
     targets = PoseTargets(truths, chosen.pose_components)
     log.info("pose: theta's top %d components per family hold %s of its variance", targets.components,
              ", ".join(f"{100 * share:.0f}% ({name})" for name, share in targets.explained.items()))
+    if state["iteration"] == 0 and "pose_heads" not in state and ae.config.pose_hidden in (None, ae.config.shape_hidden):
+        ae.pose_encoder.load_state_dict(ae.shape_encoder.state_dict())
+    teach(ae, "pose", ae.pose_encoder, ae.encode_pose, targets, sampler, chosen.pose_iterations, chosen.pose_batch,
+          chosen.pose_learning_rate, chosen, state, save, progress, device, stages)
+
+
+def train_body(ae, sampler, truths: list[dict], ranges: dict, chosen, state: dict, save, progress, device,
+               stages) -> None:
+    """Trains `ae.body_encoder` (from random weights) as `train_pose` trains E_p, on beta."""
+    targets = BodyTargets(truths, ranges)
+    log.info("body: %d beta parameters per family (%s)", targets.components,
+             ", ".join(f"{name} {int(targets.mask[targets.family == f][0].sum())}"
+                       for f, name in enumerate(targets.families)))
+    teach(ae, "body", ae.body_encoder, ae.encode_body, targets, sampler, chosen.body_iterations, chosen.pose_batch,
+          chosen.body_learning_rate, chosen, state, save, progress, device, stages)
+
+
+def teach(ae, stage: str, encoder, encode, targets, sampler, total: int, batch: int, learning_rate: float, chosen,
+          state: dict, save, progress, device, stages) -> None:
+    """One taught stage: `encoder` (read through `encode`) and a linear head per family trained to
+    predict `targets.rows` (mean squared error over each family's own columns, `targets.mask`)."""
+    heads_key = f"{stage}_heads"
     heads = nn.Linear(ae.config.latent, targets.components * len(targets.families)).to(device)
     start = state["iteration"]
-    if start == 0 and "pose_heads" not in state and ae.config.pose_hidden in (None, ae.config.shape_hidden):
-        ae.pose_encoder.load_state_dict(ae.shape_encoder.state_dict())
-    optimizer = torch.optim.Adam([*ae.pose_encoder.parameters(), *heads.parameters()], lr=chosen.pose_learning_rate)
-    if "pose_heads" in state:
-        heads.load_state_dict(state["pose_heads"])
+    optimizer = torch.optim.Adam([*encoder.parameters(), *heads.parameters()], lr=learning_rate)
+    if heads_key in state:
+        heads.load_state_dict(state[heads_key])
         optimizer.load_state_dict(state["optimizer"])
     ae.eval()
-    ae.pose_encoder.train()
-    rows, family = targets.rows.to(device), torch.from_numpy(targets.family).to(device)
+    encoder.train()
+    rows, mask = targets.rows.to(device), targets.mask.to(device)
+    family = torch.from_numpy(targets.family).to(device)
     generator = torch.Generator(device).manual_seed(chosen.seed + 2 + start)
     sampler.reseed(chosen.seed + 3 + start)
     partial = chosen.bank_view_share()
-    total, started, last_save = chosen.pose_iterations, time.monotonic(), time.monotonic()
+    started, last_save = time.monotonic(), time.monotonic()
     for iteration in range(start, total):
-        meshes = torch.randint(0, len(sampler), (chosen.pose_batch,), generator=generator, device=device)
+        meshes = torch.randint(0, len(sampler), (batch,), generator=generator, device=device)
         with torch.no_grad():
             clouds = rotate(sampler.views(meshes, 1, partial),
                             random_rotation_matrices(len(meshes), generator, ae.config.full_rotations, device))
             rotation = quaternion_to_matrix(ae.encode_rotation(clouds))
-        predicted = heads(ae.encode_pose(clouds, rotation)).view(len(meshes), len(targets.families), -1)
+        predicted = heads(encode(clouds, rotation)).view(len(meshes), len(targets.families), -1)
         predicted = predicted[torch.arange(len(meshes), device=device), family[meshes]]
-        loss = (predicted - rows[meshes]).pow(2).mean()
+        weights = mask[meshes]
+        loss = ((predicted - rows[meshes]).pow(2) * weights).sum() / weights.sum()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
-        progress.update(iteration + 1, lambda: {"pose": loss.item()}, force=iteration + 1 == total)
+        progress.update(iteration + 1, lambda: {stage: loss.item()}, force=iteration + 1 == total)
         if time.monotonic() - last_save > chosen.checkpoint_seconds and iteration + 1 < total:
-            ae.pose_encoder.eval()
-            save({"stage": "pose", "iteration": iteration + 1, "pose_heads": heads.state_dict(),
+            encoder.eval()
+            save({"stage": stage, "iteration": iteration + 1, heads_key: heads.state_dict(),
                   "optimizer": optimizer.state_dict()})
-            ae.pose_encoder.train()
+            encoder.train()
             last_save = time.monotonic()
-    ae.pose_encoder.eval()
-    stages.finish("pose", total, total, time.monotonic() - started, False)
+    encoder.eval()
+    stages.finish(stage, total, total, time.monotonic() - started, False)

@@ -30,9 +30,10 @@ import torch
 from .ae import AEConfig, Autoencoder, ae_loss, restore_batch_norms
 from .budget import budget_spent
 from .data import DepthCamera, MeshDataset
+from .evaluate import beta_ranges
 from .geometry import chamfer, matrix_to_quaternion, quaternion_to_matrix, random_rotation_matrices, rotate
 from .paired import PairedBatches, Pairing
-from .pose import train_pose
+from .pose import train_body, train_pose
 from .surface import PointSampler
 from .vae import LatentVAE, VAEConfig, vae_loss
 
@@ -78,6 +79,10 @@ class Recipe:
     pose_batch: int = 32
     pose_learning_rate: float = 1e-4
     pose_components: int = 10
+    # The body stage (pose.py; only for an AE with `body_encoder`), after the pose stage: E_b is
+    # taught each family's beta in `pose_batch`-sized batches.
+    body_iterations: int = 10_000
+    body_learning_rate: float = 5e-4
     vae_iterations: int = 40000
     vae_batch: int = 264
     vae_learning_rate: float = 1e-4
@@ -139,7 +144,7 @@ def recipe(name: str, regime: str = "gdvae++", kind: str = "ftl") -> Recipe:
         return Recipe("smoke", ae, replace(vae, latent=ae.latent, width_scale=0.02, flow_layers=3, n_extrinsic=4),
                       ae_iterations=4, ae_pretrain_iterations=2, ae_batch=4, bank_copies=2,
                       vae_iterations=4, vae_batch=16, checkpoint_seconds=0.0, pose_iterations=4, pose_batch=4,
-                      pose_components=2)
+                      pose_components=2, body_iterations=4)
     raise ValueError(f"unknown recipe {name!r} (known: {', '.join(RECIPES)})")
 
 
@@ -279,9 +284,10 @@ class Plateau:
 def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen: Recipe,
           stop_after: str | None = None, init_from: str | Path | None = None, rebuild_bank: bool = False,
           continue_ae: int = 0, device: str = "cpu", limits: StageLimits | None = None,
-          loader_workers: int = 0, pose_dataset: MeshDataset | None = None) -> dict:
-    """Runs (or resumes) the stages: AE, pose (with a pose encoder), code bank, VAE. Returns the
-    trained modules.
+          loader_workers: int = 0, pose_dataset: MeshDataset | None = None,
+          body_dataset: MeshDataset | None = None) -> dict:
+    """Runs (or resumes) the stages: AE, pose (with a pose encoder), body (with a body encoder),
+    code bank, VAE. Returns the trained modules.
 
     `init_from`: another run whose AE and code bank this run reuses (it starts at the VAE stage),
     so that two VAE regimes can be compared on exactly the same autoencoder. `rebuild_bank`: reuse
@@ -291,7 +297,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     budgets; `loader_workers`: processes that make AE batches ahead of the training step on a CPU
     (0: in the training process, on its device). `pose_dataset`: the pose stage's meshes (its
     training split; default `dataset`'s), e.g. many distinct poses where `dataset` is a paired grid
-    of few.
+    of few; `body_dataset` likewise the body stage's (many distinct subjects).
     """
     limits = limits or StageLimits()
     limits.validate()
@@ -312,6 +318,9 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         source_has_pose = source_ae.pose_encoder
         if chosen.ae.pose_encoder and not source_ae.pose_encoder:
             source_ae = replace(source_ae, pose_encoder=True, pose_hidden=chosen.ae.pose_hidden)
+        source_has_body = source_ae.body_encoder  # and a body encoder likewise
+        if chosen.ae.body_encoder and not source_ae.body_encoder:
+            source_ae = replace(source_ae, body_encoder=True, body_hidden=chosen.ae.body_hidden)
         if source_ae != chosen.ae:
             log.info("the AE configuration is %s's (reused with its weights)", init_from)
         chosen.ae = source_ae
@@ -322,7 +331,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         chosen.bank_true_rotation = source_recipe.get("bank_true_rotation", False)
         source_iterations = chosen.ae_pretrain_iterations + chosen.ae_iterations
         chosen.ae_iterations += continue_ae
-    chosen.vae = replace(chosen.vae, pose_input=chosen.ae.latent if chosen.ae.pose_encoder else 0)
+    chosen.vae = replace(chosen.vae, pose_input=chosen.ae.latent if chosen.ae.pose_encoder else 0,
+                         body_input=chosen.ae.latent if chosen.ae.body_encoder else 0)
     (run_dir / "recipe.json").write_text(json.dumps(asdict(chosen), indent=2, default=str))
     summary = dataset_summary(dataset)
     if chosen.ae.pose_encoder:  # what E_p was taught on (the bundle's manifest and model card say it)
@@ -332,6 +342,13 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         if init_from is not None and source_has_pose:  # E_p comes with the source's AE, not taught here
             source_summary = json.loads((Path(init_from) / "dataset.json").read_text())
             summary["pose_stage"] = source_summary.get("pose_stage", {"dataset": f"(the AE of {init_from})"})
+    if chosen.ae.body_encoder:  # what E_b was taught on, likewise
+        bodies = body_dataset or dataset
+        summary["body_stage"] = {"dataset": str(bodies.root), "train_meshes": len(bodies.indices("train")),
+                                 "iterations": chosen.body_iterations}
+        if init_from is not None and source_has_body:
+            source_summary = json.loads((Path(init_from) / "dataset.json").read_text())
+            summary["body_stage"] = source_summary.get("body_stage", {"dataset": f"(the AE of {init_from})"})
     (run_dir / "dataset.json").write_text(json.dumps(summary, indent=2))
     torch.manual_seed(chosen.seed)
     checkpoint_path = run_dir / "checkpoint.pt"
@@ -351,15 +368,18 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
             raise ValueError("keep_intrinsic / keep_extrinsic keep one of the source's code encoders, which reads "
                              "its AE's codes: the AE cannot be continued in the same run")
         adds_pose = chosen.ae.pose_encoder and not any(k.startswith("pose_encoder.") for k in source["ae"])
-        if adds_pose and not (continue_ae > 0 or rebuild_bank):
-            raise ValueError(f"{init_from}: its AE has no pose encoder; one is trained here before a new code bank: "
-                             "add --rebuild-bank")
+        adds_body = chosen.ae.body_encoder and not any(k.startswith("body_encoder.") for k in source["ae"])
+        if (adds_pose or adds_body) and not (continue_ae > 0 or rebuild_bank):
+            raise ValueError(f"{init_from}: its AE has no {'pose' if adds_pose else 'body'} encoder; one is trained "
+                             "here before a new code bank: add --rebuild-bank")
         if continue_ae > 0:
             state = {"stage": "ae", "iteration": source_iterations, "ae": source["ae"]}
             log.info("continuing the AE of %s for %d iterations (new code bank)", init_from, continue_ae)
         elif rebuild_bank:
-            state = {"stage": "pose" if adds_pose else "bank", "iteration": 0, "ae": source["ae"]}
-            log.info("starting from the AE of %s (%snew code bank)", init_from, "pose stage, " if adds_pose else "")
+            first = "pose" if adds_pose else "body" if adds_body else "bank"
+            state = {"stage": first, "iteration": 0, "ae": source["ae"]}
+            log.info("starting from the AE of %s (%snew code bank)", init_from,
+                     "" if first == "bank" else f"{first} stage, ")
         else:
             state = {"stage": "vae", "iteration": 0, "ae": source["ae"], "bank": source["bank"]}
             log.info("starting from the AE and code bank of %s", init_from)
@@ -381,7 +401,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         load_ae_state(ae, state["ae"])
     stages = StageRecord(run_dir / "stages.json", str(device))
     sampler = None
-    if state["stage"] in ("ae", "pose", "bank"):  # the VAE trains on the code bank, without clouds
+    if state["stage"] in ("ae", "pose", "body", "bank"):  # the VAE trains on the code bank, without clouds
         started = time.monotonic()
         sampler = PointSampler(dataset, train_indices, chosen.ae.points, chosen.seed + state["iteration"],
                                DepthCamera() if chosen.depth_camera_views else None, device)
@@ -401,7 +421,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if state["stage"] == "ae":
         probe = ReconstructionProbe(dataset, train_indices, chosen, device)
         train_ae(ae, sampler, chosen, state, save, run_dir, device, limits.ae_seconds, loader_workers, stages, probe)
-        state = {"stage": "pose" if chosen.ae.pose_encoder else "bank", "iteration": 0}
+        state = {"stage": stage_after("ae", chosen.ae), "iteration": 0}
         save(state)
     if stop_after == "ae":
         return {"ae": ae}
@@ -416,6 +436,19 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
             log.info("pose stage on %s: %d training meshes", posed.root, len(posed_indices))
         train_pose(ae, pose_sampler, [posed.items[i].truth for i in posed_indices], chosen, state,
                    lambda extra: save({**extra, **carried}), progress, device, stages)
+        state = {"stage": stage_after("pose", chosen.ae), "iteration": 0, **carried}
+        save(state)
+    if state["stage"] == "body":
+        progress = Progress("body", chosen.body_iterations, run_dir / "log.jsonl", first_iteration=state["iteration"])
+        carried = {"start_vae": state["start_vae"]} if "start_vae" in state else {}
+        bodies, body_indices, body_sampler = dataset, train_indices, sampler
+        if body_dataset is not None:
+            bodies, body_indices = body_dataset, body_dataset.indices("train")
+            body_sampler = PointSampler(bodies, body_indices, chosen.ae.points, chosen.seed + state["iteration"],
+                                        DepthCamera() if chosen.depth_camera_views else None, device)
+            log.info("body stage on %s: %d training meshes", bodies.root, len(body_indices))
+        train_body(ae, body_sampler, [bodies.items[i].truth for i in body_indices], beta_ranges(bodies.root), chosen,
+                   state, lambda extra: save({**extra, **carried}), progress, device, stages)
         state = {"stage": "bank", "iteration": 0, **carried}
         save(state)
 
@@ -439,7 +472,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         vae.load_state_dict(state["vae"])
     else:
         if "start_vae" in state:  # keep_*: the source's VAE, its flow's input scaling included
-            load_start_vae(vae, state["start_vae"], chosen.vae.keep_extrinsic)
+            load_start_vae(vae, state["start_vae"], chosen.vae.keep_extrinsic, chosen.vae.keep_intrinsic)
         else:
             vae.flow.input.fit(bank["spectrum"])
         vae.code_norm.fill_(float(bank["x_c"].pow(2).sum(-1).mean()))
@@ -580,30 +613,41 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir, device, budget_s
     ae.eval()
 
 
+def stage_after(stage: str, ae: AEConfig) -> str:
+    """The stage that follows `stage` ("ae" or "pose") for an AE of this configuration."""
+    if stage == "ae" and ae.pose_encoder:
+        return "pose"
+    return "body" if ae.body_encoder else "bank"
+
+
 def load_ae_state(ae: Autoencoder, weights: dict) -> None:
-    """An AE's weights; a pose encoder the weights lack stays as built (the pose stage starts it
-    from E_x's), anything else missing or left over is an error."""
+    """An AE's weights; a pose or body encoder the weights lack stays as built (its stage trains
+    it), anything else missing or left over is an error."""
     missing, unexpected = ae.load_state_dict(weights, strict=False)
-    if unexpected or any(not key.startswith("pose_encoder.") for key in missing):
+    if unexpected or any(not key.startswith(("pose_encoder.", "body_encoder.")) for key in missing):
         raise ValueError(f"the AE's weights do not fit its configuration: missing {missing}, unexpected {unexpected}")
 
 
-def load_start_vae(vae: LatentVAE, weights: dict, keep_extrinsic: bool = False) -> None:
+def load_start_vae(vae: LatentVAE, weights: dict, keep_extrinsic: bool = False, keep_intrinsic: bool = False) -> None:
     """keep_intrinsic's or keep_extrinsic's starting VAE. When this VAE's z_E encoder reads a pose
-    code the source's did not, that encoder starts afresh (only where it is trained here, not under
-    keep_extrinsic); everything else must fit."""
+    code (or its z_I encoder a body code) the source's did not, that encoder starts afresh (only
+    where it is trained here: not under keep_extrinsic, or keep_intrinsic); everything else must fit."""
     own = vae.state_dict()
     fresh = {key for key, value in weights.items()
-             if key.startswith("extrinsic.") and key in own and own[key].shape != value.shape}
-    if fresh and keep_extrinsic:
-        raise ValueError("keep_extrinsic keeps the starting VAE's z_E encoder, but it reads another input "
-                         f"({sorted(fresh)[0]} differs in shape): start from a VAE trained on this AE's codes")
+             if key.startswith(("extrinsic.", "intrinsic.")) and key in own and own[key].shape != value.shape}
+    for prefix, kept, flag, latent in (("extrinsic.", keep_extrinsic, "keep_extrinsic", "z_E"),
+                                       ("intrinsic.", keep_intrinsic, "keep_intrinsic", "z_I")):
+        changed = sorted(key for key in fresh if key.startswith(prefix))
+        if changed and kept:
+            raise ValueError(f"{flag} keeps the starting VAE's {latent} encoder, but it reads another input "
+                             f"({changed[0]} differs in shape): start from a VAE trained on this AE's codes")
     missing, unexpected = vae.load_state_dict({k: v for k, v in weights.items() if k not in fresh}, strict=False)
     if unexpected or set(missing) != fresh:
         raise ValueError(f"the starting VAE's weights do not fit: missing {sorted(set(missing) - fresh)}, "
                          f"unexpected {unexpected}")
-    if fresh:
-        log.info("z_E's encoder reads the pose code as well: its first layers start afresh")
+    for prefix, code, latent in (("extrinsic.", "pose", "z_E"), ("intrinsic.", "body", "z_I")):
+        if any(key.startswith(prefix) for key in fresh):
+            log.info("%s's encoder reads the %s code as well: its first layers start afresh", latent, code)
 
 
 @torch.no_grad()
@@ -620,7 +664,7 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, 
     partial = chosen.bank_view_share()
     if not 0.0 <= partial <= 1.0:
         raise ValueError(f"bank_partial_views {partial}: must be within 0..1")
-    qs, codes, poses = [], [], []
+    qs, codes, taught = [], [], {"x_p": [], "x_b": []}
     for meshes in torch.arange(len(sampler)).split(BANK_CHUNK):
         clouds = sampler.views(meshes.repeat_interleave(chosen.bank_copies), 1, partial).to(device)
         rotations = random_rotation_matrices(len(clouds), full=chosen.ae.full_rotations, device=device)
@@ -632,17 +676,19 @@ def encode_bank(ae, sampler: PointSampler, spectra: np.ndarray, chosen: Recipe, 
             q = ae.encode_rotation(inputs)
             used = quaternion_to_matrix(q)
         x_c, _ = ae.encode_shape(inputs, used)
-        if ae.pose_encoder is not None:  # turned back by E_r's estimate, as the bundle's encoder does
+        if ae.pose_encoder is not None or ae.body_encoder is not None:
+            # turned back by E_r's estimate, as the bundle's encoder does
             estimated = quaternion_to_matrix(ae.encode_rotation(inputs)) if true_rotation else used
-            poses.append(ae.encode_pose(inputs, estimated).cpu())
+            for key, value in ae.taught_codes(inputs, estimated).items():
+                if value is not None:
+                    taught[key].append(value.cpu())
         qs.append(q.cpu())
         codes.append(x_c.cpu())
     spectrum = torch.from_numpy(np.repeat(spectra, chosen.bank_copies, 0)).float()
     log.info("bank: %d training meshes x %d rotations encoded (%.0f%% partial views)", len(sampler),
              chosen.bank_copies, 100 * partial)
     bank = {"q": torch.cat(qs), "x_c": torch.cat(codes), "spectrum": spectrum, "copies": chosen.bank_copies}
-    if poses:
-        bank["x_p"] = torch.cat(poses)
+    bank.update({key: torch.cat(values) for key, values in taught.items() if values})
     if pairing is not None:
         targets = []
         for meshes in torch.arange(len(sampler)).split(BANK_CHUNK):
@@ -704,10 +750,12 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
     if (vae.config.omega_view > 0 or vae.config.paired) and size % copies:
         raise ValueError(f"the code bank has {size} entries, not a multiple of its {copies} copies per mesh")
     keys = ("q", "x_c", "spectrum", "target") if vae.config.paired else ("q", "x_c", "spectrum")
-    if vae.config.pose_input:
-        if "x_p" not in bank:
-            raise ValueError("this VAE's z_E reads the pose code, but the code bank has none: rebuild it (--rebuild-bank)")
-        keys += ("x_p",)
+    for key, width, name in (("x_p", vae.config.pose_input, "z_E reads the pose code"),
+                             ("x_b", vae.config.body_input, "z_I reads the body code")):
+        if width and key not in bank:
+            raise ValueError(f"this VAE's {name}, but the code bank has none: rebuild it (--rebuild-bank)")
+        if width:
+            keys += (key,)
     on_device = {key: bank[key].to(device) for key in keys}
     triples = (PairedBatches(bank["pairing"], copies, chosen.seed + 1 + state["iteration"],
                              pose_pairs=vae.config.omega_pose_contrast > 0) if vae.config.paired else None)
@@ -725,7 +773,8 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
         beta_scale = min(1.0, iteration / warmup) if warmup > 0 else 1.0
         losses = vae_loss(vae, on_device["q"][batch], on_device["x_c"][batch], on_device["spectrum"][batch],
                           dataset_size=size, beta_scale=beta_scale, paired=paired,
-                          x_p=on_device["x_p"][batch] if "x_p" in on_device else None)
+                          x_p=on_device["x_p"][batch] if "x_p" in on_device else None,
+                          x_b=on_device["x_b"][batch] if "x_b" in on_device else None)
         optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
         torch.nn.utils.clip_grad_norm_(vae.trained_parameters(), 100.0)

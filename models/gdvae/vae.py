@@ -105,6 +105,9 @@ class VAEConfig:
     # Size of the pose code x_p that z_E's encoder reads beside x_c (the AE's pose encoder, pose.py;
     # 0: none, the paper's z_E from x_c alone).
     pose_input: int = 0
+    # Size of the body code x_b that z_I's encoder reads beside x_c (the AE's body encoder, taught
+    # the sim's beta, pose.py; 0: none, the paper's z_I from x_c alone).
+    body_input: int = 0
 
     @property
     def paired(self) -> bool:
@@ -130,8 +133,9 @@ class VAEConfig:
             raise ValueError(f"contrast_temperature must be > 0, got {self.contrast_temperature}")
         if self.paired and self.regime == "gdvae++":
             raise ValueError("the paired terms decode z_I of x_c: use them with the 'paired' (or 'fo') regime")
-        if self.pose_input < 0:
-            raise ValueError(f"pose_input must be >= 0 (0: no pose code), got {self.pose_input}")
+        if self.pose_input < 0 or self.body_input < 0:
+            raise ValueError(f"pose_input and body_input must be >= 0 (0: no such code), got {self.pose_input}, "
+                             f"{self.body_input}")
         if min(self.latent, self.spectrum, self.n_rotation, self.n_extrinsic) < 1:
             raise ValueError("latent sizes must be positive")
         if self.covariance_form not in ("covariance", "correlation", "off"):
@@ -199,7 +203,7 @@ class LatentVAE(nn.Module):
         self.rotation = RotationEncoder(config.n_rotation, s)
         self.extrinsic = GaussianEncoder(n + config.pose_input, n_e, tuple(_w(h, s) for h in (2000, 1600, 1200, 400)),
                                          tuple(_w(h, s) for h in (2000, 1200, 400)))
-        self.intrinsic = GaussianEncoder(n, n_i, tuple(_w(h, s) for h in (2000, 1600, 1200, 400)),
+        self.intrinsic = GaussianEncoder(n + config.body_input, n_i, tuple(_w(h, s) for h in (2000, 1600, 1200, 400)),
                                          tuple(_w(h, s) for h in (2000, 1200, 400)))
         # Sigma~_I(lambda): only the GDVAE++ training pass samples z~_I, so only it has one.
         self.spectral_variance = mlp(config.spectrum, (2 * n_i, 2 * n_i), n_i) if config.regime == "gdvae++" else None
@@ -220,17 +224,24 @@ class LatentVAE(nn.Module):
         `keep_extrinsic`)."""
         return [p for p in self.parameters() if p.requires_grad]
 
-    def encode(self, q, x_c, x_p=None):
+    def encode(self, q, x_c, x_p=None, x_b=None):
         """Posterior means and log-variances: ((mu_R, lv_R), (mu_E, lv_E), (mu_I, lv_I)). `x_p`: the
-        pose code, which z_E's encoder reads beside x_c when `pose_input` > 0."""
-        if (x_p is None) != (self.config.pose_input == 0):
-            raise ValueError(f"this VAE's z_E reads a pose code of {self.config.pose_input} numbers; got "
-                             f"{'none' if x_p is None else x_p.shape[-1]}")
-        extrinsic_input = x_c if x_p is None else torch.cat([x_c, x_p], -1)
-        return self.rotation(q), self.extrinsic(extrinsic_input), self.intrinsic(x_c)
+        pose code, which z_E's encoder reads beside x_c when `pose_input` > 0; `x_b`: the body code,
+        which z_I's encoder reads beside x_c when `body_input` > 0."""
+        for code, size, name, latent in ((x_p, self.config.pose_input, "pose", "z_E"),
+                                         (x_b, self.config.body_input, "body", "z_I")):
+            if (code is None) != (size == 0):
+                raise ValueError(f"this VAE's {latent} reads a {name} code of {size} numbers; got "
+                                 f"{'none' if code is None else code.shape[-1]}")
+        return self.rotation(q), self.extrinsic(with_code(x_c, x_p)), self.intrinsic(with_code(x_c, x_b))
 
     def decode(self, z_r, z_e, z_i):
         return normalize_quaternion(self.decode_rotation(z_r)), self.decode_shape(torch.cat([z_e, z_i], -1))
+
+
+def with_code(x_c, code):
+    """x_c, with a taught code (x_p or x_b) beside it when there is one."""
+    return x_c if code is None else torch.cat([x_c, code], -1)
 
 
 def sample(mean, log_variance):
@@ -274,17 +285,16 @@ def disentanglement_penalty(form: str, groups: list[torch.Tensor]) -> torch.Tens
 
 
 def jacobian_penalty(model: LatentVAE, mu_e: torch.Tensor, mu_i: torch.Tensor,
-                     x_p: torch.Tensor | None = None) -> torch.Tensor:
+                     x_p: torch.Tensor | None = None, x_b: torch.Tensor | None = None) -> torch.Tensor:
     """L_J: ||d mu^_E / d mu_I||_F^2 + ||d mu^_I / d mu_E||_F^2 through a decode/re-encode cycle,
-    estimated without building Jacobians: E_v ||J v||^2 = ||J||_F^2 for v ~ N(0, I). A pose code
-    x_p (read from the points, not from x_c) is held at the batch's own."""
+    estimated without building Jacobians: E_v ||J v||^2 = ||J||_F^2 for v ~ N(0, I). The taught
+    codes x_p and x_b (read from the points, not from x_c) are held at the batch's own."""
 
     def reencode_extrinsic(z_i):
-        decoded = model.decode_shape(torch.cat([mu_e, z_i], -1))
-        return model.extrinsic.mean(decoded if x_p is None else torch.cat([decoded, x_p], -1))
+        return model.extrinsic.mean(with_code(model.decode_shape(torch.cat([mu_e, z_i], -1)), x_p))
 
     def reencode_intrinsic(z_e):
-        return model.intrinsic.mean(model.decode_shape(torch.cat([z_e, mu_i], -1)))
+        return model.intrinsic.mean(with_code(model.decode_shape(torch.cat([z_e, mu_i], -1)), x_b))
 
     _, e_by_i = torch.func.jvp(reencode_extrinsic, (mu_i,), (torch.randn_like(mu_i),))
     _, i_by_e = torch.func.jvp(reencode_intrinsic, (mu_e,), (torch.randn_like(mu_e),))
@@ -308,7 +318,8 @@ def view_consistency(mu_i: torch.Tensor) -> torch.Tensor:
 
 def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: torch.Tensor,
              dataset_size: int, with_jacobian: bool = True, beta_scale: float = 1.0,
-             paired: dict | None = None, x_p: torch.Tensor | None = None) -> VAELosses:
+             paired: dict | None = None, x_p: torch.Tensor | None = None,
+             x_b: torch.Tensor | None = None) -> VAELosses:
     """The full objective L_HF + L_lambda + L_F + L_D on a batch, in the configured regime.
     `beta_scale` multiplies the four HFVAE betas (the warm-up). With `omega_view` > 0 the batch
     must be pairs of views (`view_consistency`). With the paired terms on, the batch is paired
@@ -317,7 +328,7 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
     c = model.config
     if c.paired and paired is None:
         raise ValueError("the paired regime's terms are on but the batch is not paired (train.py, paired_inputs)")
-    (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = model.encode(q, x_c, x_p)
+    (mu_r, lv_r), (mu_e, lv_e), (mu_i, lv_i) = model.encode(q, x_c, x_p, x_b)
     flow_mean, log_det = model.flow(spectrum)
     if c.regime == "gdvae++":
         mean_i, log_var_i = flow_mean, model.spectral_variance(spectrum).clamp(-12.0, 6.0)
@@ -372,7 +383,7 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
     covariance = disentanglement_penalty(c.covariance_form, [mu_r, mu_e, mean_i])
     # omega_J = 0 turns L_J off, and its cost (most of a step) with it.
     with_jacobian = with_jacobian and c.omega_jacobian != 0
-    jacobian = jacobian_penalty(model, mu_e, mean_i, x_p) if with_jacobian else mu_e.new_zeros(())
+    jacobian = jacobian_penalty(model, mu_e, mean_i, x_p, x_b) if with_jacobian else mu_e.new_zeros(())
     disentangle = c.omega_covariance * covariance + c.omega_jacobian * jacobian
 
     total = hf + flow + consistency + disentangle + supervised

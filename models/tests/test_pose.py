@@ -9,7 +9,7 @@ import torch
 
 from gdvae.cli import main
 from gdvae.import_bundle import import_bundle
-from gdvae.pose import PoseTargets
+from gdvae.pose import BodyTargets, PoseTargets
 from gdvae.train import load_run
 
 
@@ -95,3 +95,75 @@ def test_a_narrower_pose_encoder_starts_afresh_and_its_widths_travel_in_the_bund
     assert import_bundle(bundle, tmp_path / "imported")["parity_max_diff"] < 1e-4
     _, imported, _, _ = load_run(tmp_path / "imported")
     assert imported.config.pose_hidden == (8, 12)
+
+
+def test_body_targets_are_each_family_s_normalised_beta_in_units_of_its_spread():
+    rng = np.random.default_rng(1)
+    records = ([{"family": "biped", "beta": list(rng.uniform(0, 2, 3))} for _ in range(30)]
+               + [{"family": "quadruped", "beta": list(rng.uniform(5, 9, 5))} for _ in range(40)])
+    targets = BodyTargets(records, ranges={})
+    assert targets.families == ["biped", "quadruped"] and targets.components == 5
+    rows, mask = targets.rows.numpy(), targets.mask.numpy()
+    biped = targets.family == 0
+    # A family with fewer parameters is padded, and the padding is masked out of the loss.
+    np.testing.assert_array_equal(mask[biped], np.tile([1, 1, 1, 0, 0], (30, 1)))
+    np.testing.assert_array_equal(rows[biped][:, 3:], 0)
+    for f in range(2):
+        own = rows[targets.family == f][:, : int(mask[targets.family == f][0].sum())]
+        np.testing.assert_allclose(own.mean(0), 0, atol=1e-5)
+        np.testing.assert_allclose(own.std(0), 1, atol=1e-4)
+    with pytest.raises(ValueError, match="ground truth"):
+        BodyTargets([{"family": "biped"}] * 5, ranges={})
+    with pytest.raises(ValueError, match="beta differs"):
+        BodyTargets([{"family": "biped", "beta": [1.0, 2.0]}] * 5, ranges={})
+
+
+def test_a_body_encoder_added_to_a_pose_model_feeds_z_i_only_and_survives_export_and_import(
+        paired_dataset, tmp_path, inspect_with_node):
+    source, run, bundle = tmp_path / "source", tmp_path / "run", tmp_path / "bundle"
+    assert main(["train", str(paired_dataset), "--out", str(source), "--recipe", "smoke", "--regime", "paired",
+                 "--ae", "std", "--set", "ae.pose_encoder=true", "--set", "recipe.vae_batch=24"]) == 0
+    added = ["train", str(paired_dataset), "--out", str(run), "--recipe", "smoke", "--regime", "paired",
+             "--init-from", str(source), "--set", "ae.body_encoder=true", "--set", "ae.body_hidden=8,12",
+             "--set", "vae.keep_extrinsic=true", "--set", "recipe.vae_batch=24"]
+    assert main(added) != 0  # the bank must be rebuilt with the body code
+    with pytest.raises(SystemExit, match="body_encoder"):  # a body dataset without a body encoder
+        main(["train", str(paired_dataset), "--out", str(tmp_path / "no"), "--recipe", "smoke", "--init-from",
+              str(source), "--rebuild-bank", "--body-data", str(paired_dataset)])
+    # keep_intrinsic keeps z_I's encoder, which cannot then read a new code.
+    assert main(["train", str(paired_dataset), "--out", str(tmp_path / "kept"), "--recipe", "smoke", "--regime",
+                 "paired", "--init-from", str(source), "--rebuild-bank", "--set", "ae.body_encoder=true",
+                 "--set", "vae.keep_intrinsic=true", "--set", "recipe.vae_batch=24"]) != 0
+    assert main([*added, "--rebuild-bank", "--body-data", str(paired_dataset)]) == 0
+    stages = [json.loads(line)["stage"] for line in (run / "log.jsonl").read_text().splitlines()]
+    assert "body" in stages and "pose" not in stages and stages.index("body") < stages.index("vae")
+    _, ae, vae, state = load_run(run)
+    _, source_ae, source_vae, _ = load_run(source)
+    assert state["bank"]["x_b"].shape == state["bank"]["x_c"].shape == state["bank"]["x_p"].shape
+    assert [layer.out_channels for layer in ae.body_encoder.shared if isinstance(layer, torch.nn.Conv1d)] == [8, 12]
+    # E_p, E_x and z_E's encoder are the source's (keep_extrinsic); z_I's encoder trained.
+    assert torch.equal(ae.pose_encoder.head.weight, source_ae.pose_encoder.head.weight)
+    assert torch.equal(ae.shape_encoder.head.weight, source_ae.shape_encoder.head.weight)
+    for key, value in source_vae.extrinsic.state_dict().items():
+        assert torch.equal(vae.extrinsic.state_dict()[key], value)
+    # z_I reads the body code and z_E does not.
+    points = torch.randn(3, ae.config.points, 3) * 0.2
+    eye = torch.eye(3).expand(3, 3, 3)
+    with torch.no_grad():
+        q = ae.encode_rotation(points)
+        x_c, _ = ae.encode_shape(points, eye)
+        codes = ae.taught_codes(points, eye)
+        (_, (e1, _), (i1, _)) = vae.encode(q, x_c, **codes)
+        (_, (e2, _), (i2, _)) = vae.encode(q, x_c, codes["x_p"], codes["x_b"] + 1.0)
+    assert torch.equal(e1, e2) and not torch.allclose(i1, i2)
+    with pytest.raises(ValueError, match="body code"):
+        vae.encode(q, x_c, codes["x_p"])
+    assert main(["export", str(run), "--out", str(bundle)]) == 0
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    assert manifest["model"]["body_encoder"] is True and manifest["model"]["body_hidden"] == [8, 12]
+    assert manifest["training"]["body_stage"]["dataset"] == str(paired_dataset)
+    assert "body encoder's code" in (bundle / "MODEL_CARD.md").read_text()
+    assert import_bundle(bundle, tmp_path / "imported")["parity_max_diff"] < 1e-4
+    _, imported_ae, _, _ = load_run(tmp_path / "imported")
+    assert imported_ae.body_encoder is not None and imported_ae.config.body_hidden == (8, 12)
+    assert "z_I from a body encoder" in inspect_with_node(bundle)
