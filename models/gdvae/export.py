@@ -251,9 +251,9 @@ def model_card(manifest: dict) -> str:
         f"subjects; families {', '.join(t.get('families', [])) or '?'}.",
         f"AE iterations {t.get('ae_iterations', '?')}, VAE iterations {t.get('vae_iterations', '?')}.",
         *([f"z_E's encoder reads a pose encoder's code: E_p, which sees the cloud turned back by the estimated "
-           f"rotation, was taught the top {t['pose_stage']['components']} principal components of the sim's "
-           f"joint angles per family for {t['pose_stage']['iterations']} iterations on "
-           f"{t['pose_stage']['train_meshes']} training meshes of {t['pose_stage']['dataset']}."]
+           f"rotation, was taught the top {t['pose_stage'].get('components', '?')} principal components of the "
+           f"sim's joint angles per family for {t['pose_stage'].get('iterations', '?')} iterations on "
+           f"{t['pose_stage'].get('train_meshes', '?')} training meshes of {t['pose_stage'].get('dataset', '?')}."]
           if t.get("pose_stage") else []),
         *([f"z_I's encoder reads a body encoder's code: E_b, in the same frame, was taught the sim's body-shape "
            f"parameters (beta) per family for {t['body_stage'].get('iterations', '?')} iterations on "

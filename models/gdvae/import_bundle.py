@@ -174,7 +174,10 @@ def import_bundle(bundle: str | Path, out: str | Path) -> dict:
     torch.save({"stage": "bank", "iteration": 0, "ae": ae.state_dict(), "imported_vae": vae.state_dict(),
                 "imported_from": str(bundle)}, out / "checkpoint.pt")
     summary = {"bundle": str(bundle), "run": str(out), "ae": chosen.ae.kind, "rotation_head": head,
-               "regime": chosen.vae.regime, "parity_max_diff": worst, "vae_not_in_bundle": absent}
+               "regime": chosen.vae.regime, "parity_max_diff": worst, "vae_not_in_bundle": absent,
+               # what the bundle's taught encoders were taught on, for a run that reuses them (train.py)
+               **{key: value for key, value in manifest.get("training", {}).items()
+                  if key in ("pose_stage", "body_stage")}}
     (out / "imported.json").write_text(json.dumps(summary, indent=2))
     return summary
 

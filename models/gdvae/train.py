@@ -340,15 +340,13 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         summary["pose_stage"] = {"dataset": str(posed.root), "train_meshes": len(posed.indices("train")),
                                  "iterations": chosen.pose_iterations, "components": chosen.pose_components}
         if init_from is not None and source_has_pose:  # E_p comes with the source's AE, not taught here
-            source_summary = json.loads((Path(init_from) / "dataset.json").read_text())
-            summary["pose_stage"] = source_summary.get("pose_stage", {"dataset": f"(the AE of {init_from})"})
+            summary["pose_stage"] = source_stage(init_from, "pose_stage")
     if chosen.ae.body_encoder:  # what E_b was taught on, likewise
         bodies = body_dataset or dataset
         summary["body_stage"] = {"dataset": str(bodies.root), "train_meshes": len(bodies.indices("train")),
                                  "iterations": chosen.body_iterations}
         if init_from is not None and source_has_body:
-            source_summary = json.loads((Path(init_from) / "dataset.json").read_text())
-            summary["body_stage"] = source_summary.get("body_stage", {"dataset": f"(the AE of {init_from})"})
+            summary["body_stage"] = source_stage(init_from, "body_stage")
     (run_dir / "dataset.json").write_text(json.dumps(summary, indent=2))
     torch.manual_seed(chosen.seed)
     checkpoint_path = run_dir / "checkpoint.pt"
@@ -611,6 +609,16 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir, device, budget_s
         iteration = total
     stages.finish("ae", iteration, total, time.monotonic() - started, budget_ended)
     ae.eval()
+
+
+def source_stage(init_from: str | Path, key: str) -> dict:
+    """What the source run says of a taught stage (`pose_stage`, `body_stage`) whose encoder this
+    run reuses: its `dataset.json`, or for an imported bundle its `imported.json` (the manifest's)."""
+    for name in ("dataset.json", "imported.json"):
+        path = Path(init_from) / name
+        if path.exists() and key in (recorded := json.loads(path.read_text())):
+            return recorded[key]
+    return {"dataset": f"(the AE of {init_from})"}
 
 
 def stage_after(stage: str, ae: AEConfig) -> str:
