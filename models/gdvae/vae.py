@@ -92,6 +92,12 @@ class VAEConfig:
     # the view's own code. The view's code also holds what the camera saw of the mesh; asked to
     # reproduce it, the decoder makes z_E carry the view, since z_I is held to the subject.
     reconstruct_canonical: bool = False
+    # Not in the paper: mu_I taught the sim's body shape directly. A linear head per family (only
+    # in training; not in the bundle) maps mu_I to the normalised beta of pose.BodyTargets, and its
+    # mean squared error is added with this weight. 0: off. `body_heads` is the heads' output width
+    # (beta parameters x families), set by `train` from the dataset.
+    omega_body: float = 0.0
+    body_heads: int = 0
     # Not in the paper: z_I's encoder, the spectral flow and the rotation branch keep the weights
     # the VAE starts with (another run's or an imported bundle's VAE, `train --init-from`); only
     # z_E's encoder and the shape decoder train. A live pose code is then added to a model whose
@@ -126,7 +132,7 @@ class VAEConfig:
     def validate(self) -> None:
         if self.regime not in ("gdvae++", "fo", "paired"):
             raise ValueError(f"regime must be 'gdvae++', 'fo' or 'paired', got {self.regime!r}")
-        for name in ("omega_swap", "omega_contrast", "omega_pose_contrast"):
+        for name in ("omega_swap", "omega_contrast", "omega_pose_contrast", "omega_body"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0 (0: off), got {getattr(self, name)}")
         if not self.contrast_temperature > 0:
@@ -210,6 +216,7 @@ class LatentVAE(nn.Module):
         self.flow = SpectralFlow(config.spectrum, config.flow_layers, _w(config.flow_hidden, s))
         self.decode_rotation = mlp(config.n_rotation, tuple(_w(h, s) for h in (64, 128, 256)), 4)
         self.decode_shape = mlp(n_e + n_i, tuple(_w(h, s) for h in (600, 1200, 1600, 2000)), n)
+        self.body_heads = nn.Linear(n_i, config.body_heads) if config.omega_body > 0 and config.body_heads else None
         # E[||x_c||^2] over the training codes, for the normalized reconstruction error.
         self.register_buffer("code_norm", torch.ones(()))
         if config.keep_intrinsic:
@@ -319,12 +326,13 @@ def view_consistency(mu_i: torch.Tensor) -> torch.Tensor:
 def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: torch.Tensor,
              dataset_size: int, with_jacobian: bool = True, beta_scale: float = 1.0,
              paired: dict | None = None, x_p: torch.Tensor | None = None,
-             x_b: torch.Tensor | None = None) -> VAELosses:
+             x_b: torch.Tensor | None = None, body: dict | None = None) -> VAELosses:
     """The full objective L_HF + L_lambda + L_F + L_D on a batch, in the configured regime.
     `beta_scale` multiplies the four HFVAE betas (the warm-up). With `omega_view` > 0 the batch
     must be pairs of views (`view_consistency`). With the paired terms on, the batch is paired
     triples and `paired` holds the swaps' target codes and each row's subject and family
-    (train.py, `paired_inputs`)."""
+    (train.py, `paired_inputs`). With `omega_body` > 0, `body` holds each row's body targets
+    (`rows`, `mask`: pose.BodyTargets') and `family` (its index there)."""
     c = model.config
     if c.paired and paired is None:
         raise ValueError("the paired regime's terms are on but the batch is not paired (train.py, paired_inputs)")
@@ -379,6 +387,14 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
             # The same contrast with the shared pose as the label: a pose is one family's.
             pose_contrast = identity_contrast(mu_e, paired["pose"], paired["family"], c.contrast_temperature)
     supervised = c.omega_swap * swap + c.omega_contrast * contrast + c.omega_pose_contrast * pose_contrast
+    body_error = mu_i.new_zeros(())
+    if c.omega_body > 0:
+        if body is None or model.body_heads is None:
+            raise ValueError("omega_body is on but the batch has no body targets (train.py, train_vae)")
+        predicted = model.body_heads(mu_i).view(len(mu_i), -1, body["rows"].shape[-1])
+        predicted = predicted[torch.arange(len(mu_i), device=mu_i.device), body["family"]]
+        body_error = ((predicted - body["rows"]).pow(2) * body["mask"]).sum() / body["mask"].sum().clamp_min(1.0)
+        supervised = supervised + c.omega_body * body_error
 
     covariance = disentanglement_penalty(c.covariance_form, [mu_r, mu_e, mean_i])
     # omega_J = 0 turns L_J off, and its cost (most of a step) with it.
@@ -391,6 +407,6 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
         "total": total, "reconstruction": reconstruction, "quaternion": rotation,
         **terms, "log_p_lambda": log_likelihood, "intrinsic_consistency": intrinsic,
         "spectrum_error": spectrum_error, "variance_nll": variance, "view_consistency": views, "covariance": covariance, "jacobian": jacobian,
-        "swap": swap, "identity_contrast": contrast, "pose_contrast": pose_contrast,
+        "swap": swap, "identity_contrast": contrast, "pose_contrast": pose_contrast, "body": body_error,
     }
     return VAELosses(total, LossParts(parts))

@@ -2,6 +2,7 @@
 the HFVAE estimator against a brute-force computation."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -405,3 +406,26 @@ def test_the_code_bank_shows_partial_views_in_the_chosen_share():
         assert bank["x_c"].shape[0] == 2 * chosen.bank_copies and torch.equal(bank["spectrum"], torch.ones(4, 6))
     with pytest.raises(ValueError, match="bank_partial_views"):
         encode_bank(ae, Sampler(), spectra, replace(chosen, bank_partial_views=1.5))
+
+
+def test_the_body_term_is_zero_for_heads_that_name_beta_and_positive_otherwise():
+    torch.manual_seed(0)
+    model = LatentVAE(replace(small_vae("fo"), omega_body=1.0, body_heads=2 * 3))  # 3 parameters, 2 families
+    q = torch.nn.functional.normalize(torch.randn(8, 4), dim=-1)
+    x_c, spectra = torch.randn(8, 24), torch.rand(8, 6).cumsum(-1) + 1
+    model.flow.input.fit(spectra)
+    family = torch.tensor([0, 1] * 4)
+    with pytest.raises(ValueError, match="no body targets"):
+        vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False)
+    with torch.no_grad():
+        (_, _, (mu_i, _)) = model.encode(q, x_c)
+        exact = model.body_heads(mu_i).view(8, 2, 3)[torch.arange(8), family]
+    mask = torch.ones(8, 3)
+    mask[family == 0, 2] = 0  # family 0 has two parameters: its padding is not scored
+    exact[family == 0, 2] = 5.0
+    body = {"rows": exact, "mask": mask, "family": family}
+    parts = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False, body=body).parts
+    assert parts["body"] == pytest.approx(0.0, abs=1e-10)
+    body["rows"] = exact + 0.5 * mask
+    parts = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False, body=body).parts
+    assert parts["body"] == pytest.approx(0.25, rel=1e-5)

@@ -167,3 +167,18 @@ def test_a_body_encoder_added_to_a_pose_model_feeds_z_i_only_and_survives_export
     _, imported_ae, _, _ = load_run(tmp_path / "imported")
     assert imported_ae.body_encoder is not None and imported_ae.config.body_hidden == (8, 12)
     assert "z_I from a body encoder" in inspect_with_node(bundle)
+
+
+def test_mu_i_taught_beta_trains_on_the_bank_s_meshes_and_leaves_no_heads_in_the_bundle(paired_dataset, tmp_path):
+    run, bundle = tmp_path / "run", tmp_path / "bundle"
+    assert main(["train", str(paired_dataset), "--out", str(run), "--recipe", "smoke", "--regime", "paired",
+                 "--ae", "std", "--set", "recipe.vae_batch=24", "--set", "vae.omega_body=10"]) == 0
+    logged = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    body = [row["body"] for row in logged if row.get("stage") == "vae" and "body" in row]
+    assert body and all(value > 0 for value in body)
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert any(key.startswith("body_heads.") for key in state["vae"])  # trained, and resumable
+    _, _, vae, _ = load_run(run)
+    assert vae.body_heads is None  # the trained model is the bundle's: the heads exist only in training
+    assert main(["export", str(run), "--out", str(bundle)]) == 0
+    assert import_bundle(bundle, tmp_path / "imported")["parity_max_diff"] < 1e-4
