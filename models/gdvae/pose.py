@@ -64,9 +64,9 @@ class PoseTargets:
 
 class BodyTargets:
     """Per family, each body-shape parameter of beta mapped to [0, 1] by the family's range (the
-    dataset's `ranges`, as `evaluate` maps it for E_beta; the observed range where it has none), then centred
-    and in units of its spread over the training meshes. Families with fewer parameters are padded,
-    and `mask` says which columns are a family's own."""
+    dataset's `ranges`, as `evaluate` maps it for E_beta; the observed range where it has none),
+    then centred and in units of its spread over the training meshes. Families with fewer
+    parameters are padded, and `mask` says which columns are a family's own."""
 
     def __init__(self, truths: list[dict], ranges: dict):
         if not truths or any("beta" not in t or "family" not in t for t in truths):
