@@ -427,12 +427,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if state["stage"] == "pose":
         progress = Progress("pose", chosen.pose_iterations, run_dir / "log.jsonl", first_iteration=state["iteration"])
         carried = {"start_vae": state["start_vae"]} if "start_vae" in state else {}
-        posed, posed_indices, pose_sampler = dataset, train_indices, sampler
-        if pose_dataset is not None:
-            posed, posed_indices = pose_dataset, pose_dataset.indices("train")
-            pose_sampler = PointSampler(posed, posed_indices, chosen.ae.points, chosen.seed + state["iteration"],
-                                        DepthCamera() if chosen.depth_camera_views else None, device)
-            log.info("pose stage on %s: %d training meshes", posed.root, len(posed_indices))
+        posed, posed_indices, pose_sampler = taught_meshes("pose", pose_dataset, dataset, train_indices, sampler,
+                                                           chosen, state["iteration"], device)
         train_pose(ae, pose_sampler, [posed.items[i].truth for i in posed_indices], chosen, state,
                    lambda extra: save({**extra, **carried}), progress, device, stages)
         state = {"stage": stage_after("pose", chosen.ae), "iteration": 0, **carried}
@@ -440,12 +436,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if state["stage"] == "body":
         progress = Progress("body", chosen.body_iterations, run_dir / "log.jsonl", first_iteration=state["iteration"])
         carried = {"start_vae": state["start_vae"]} if "start_vae" in state else {}
-        bodies, body_indices, body_sampler = dataset, train_indices, sampler
-        if body_dataset is not None:
-            bodies, body_indices = body_dataset, body_dataset.indices("train")
-            body_sampler = PointSampler(bodies, body_indices, chosen.ae.points, chosen.seed + state["iteration"],
-                                        DepthCamera() if chosen.depth_camera_views else None, device)
-            log.info("body stage on %s: %d training meshes", bodies.root, len(body_indices))
+        bodies, body_indices, body_sampler = taught_meshes("body", body_dataset, dataset, train_indices, sampler,
+                                                           chosen, state["iteration"], device)
         train_body(ae, body_sampler, [bodies.items[i].truth for i in body_indices], beta_ranges(bodies.root), chosen,
                    state, lambda extra: save({**extra, **carried}), progress, device, stages)
         state = {"stage": "bank", "iteration": 0, **carried}
@@ -624,6 +616,18 @@ def source_stage(init_from: str | Path, key: str) -> dict:
         if path.exists() and key in (recorded := json.loads(path.read_text())):
             return recorded[key]
     return {"dataset": f"(the AE of {init_from})"}
+
+
+def taught_meshes(stage: str, own: MeshDataset | None, dataset: MeshDataset, train_indices: list[int],
+                  sampler: PointSampler, chosen: Recipe, iteration: int, device) -> tuple:
+    """A taught stage's (dataset, training indices, sampler): its own dataset's (`--pose-data`,
+    `--body-data`) when it has one, else the run's."""
+    if own is None:
+        return dataset, train_indices, sampler
+    indices = own.indices("train")
+    log.info("%s stage on %s: %d training meshes", stage, own.root, len(indices))
+    return own, indices, PointSampler(own, indices, chosen.ae.points, chosen.seed + iteration,
+                                      DepthCamera() if chosen.depth_camera_views else None, device)
 
 
 def stage_after(stage: str, ae: AEConfig) -> str:
