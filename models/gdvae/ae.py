@@ -65,7 +65,7 @@ class AEConfig:
     pose_hidden: tuple[int, ...] | None = None
     # Not in the paper either: E_b, a third encoder in E_p's frame, trained on the sim's body-shape
     # parameters beta (pose.py), so that the VAE's z_I reads a code that holds the body and not the
-    # pose: x_c, a reconstruction code, holds beta weakly (a ridge from x_c recovers R2 0.2-0.3 of it
+    # pose: x_c, a reconstruction code, holds beta weakly (a ridge from x_c recovers R2 0.13-0.31 of it
     # on fresh subjects; models/EXPERIMENTS.md, "A body encoder for z_I"). Its code x_b has x_c's size.
     body_encoder: bool = False
     # E_b's per-point widths (from random weights).

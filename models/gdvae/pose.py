@@ -90,6 +90,14 @@ class BodyTargets:
         self.rows, self.mask = torch.from_numpy(rows), torch.from_numpy(mask)
 
 
+def family_head_error(outputs: torch.Tensor, rows: torch.Tensor, mask: torch.Tensor,
+                      family: torch.Tensor) -> torch.Tensor:
+    """The mean squared error of linear heads per family ([B, families x columns] outputs) against
+    each row's targets, read from the row's own family's head, over the columns `mask` marks."""
+    chosen = outputs.view(len(outputs), -1, rows.shape[-1])[torch.arange(len(outputs), device=outputs.device), family]
+    return ((chosen - rows).pow(2) * mask).sum() / mask.sum().clamp_min(1.0)
+
+
 def train_pose(ae, sampler, truths: list[dict], chosen, state: dict, save, progress, device, stages) -> None:
     """Trains `ae.pose_encoder` (from E_x's weights when it has E_x's widths, else from random
     weights) on views of the training meshes as the code bank draws them (`chosen.bank_view_share()`
@@ -139,10 +147,7 @@ def teach(ae, stage: str, encoder, encode, targets, sampler, total: int, batch: 
             clouds = rotate(sampler.views(meshes, 1, partial),
                             random_rotation_matrices(len(meshes), generator, ae.config.full_rotations, device))
             rotation = quaternion_to_matrix(ae.encode_rotation(clouds))
-        predicted = heads(encode(clouds, rotation)).view(len(meshes), len(targets.families), -1)
-        predicted = predicted[torch.arange(len(meshes), device=device), family[meshes]]
-        weights = mask[meshes]
-        loss = ((predicted - rows[meshes]).pow(2) * weights).sum() / weights.sum()
+        loss = family_head_error(heads(encode(clouds, rotation)), rows[meshes], mask[meshes], family[meshes])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

@@ -28,6 +28,7 @@ from .hfvae import hfvae_terms
 from .loss_parts import LossParts
 from .nets import mlp
 from .paired import identity_contrast, swap_error
+from .pose import family_head_error
 from .spectrum import spectral_distance_torch
 
 
@@ -391,9 +392,7 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
     if c.omega_body > 0:
         if body is None or model.body_heads is None:
             raise ValueError("omega_body is on but the batch has no body targets (train.py, train_vae)")
-        predicted = model.body_heads(mu_i).view(len(mu_i), -1, body["rows"].shape[-1])
-        predicted = predicted[torch.arange(len(mu_i), device=mu_i.device), body["family"]]
-        body_error = ((predicted - body["rows"]).pow(2) * body["mask"]).sum() / body["mask"].sum().clamp_min(1.0)
+        body_error = family_head_error(model.body_heads(mu_i), body["rows"], body["mask"], body["family"])
         supervised = supervised + c.omega_body * body_error
 
     covariance = disentanglement_penalty(c.covariance_form, [mu_r, mu_e, mean_i])
