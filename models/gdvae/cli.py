@@ -96,11 +96,14 @@ def train_command(args) -> int:
              len(dataset.indices("train")), dataset.scale)
     spectra = dataset_spectra(dataset, chosen.spectrum_count, SpectrumCache(Path(args.dataset) / ".spectra"))
     taught = {}  # the pose and body stages' own datasets
-    for flag, path, stage, needed in (("--pose-data", args.pose_data, "pose", chosen.ae.pose_encoder),
-                                      ("--body-data", args.body_data, "body", chosen.ae.body_encoder)):
-        if path:
-            if not needed:
+    source_ae = json.loads((Path(args.init_from) / "recipe.json").read_text())["ae"] if args.init_from else {}
+    for flag, path, stage in (("--pose-data", args.pose_data, "pose"), ("--body-data", args.body_data, "body")):
+        if path:  # the stage's encoder is added here (--set) or comes with --init-from's AE
+            if not (getattr(chosen.ae, f"{stage}_encoder") or source_ae.get(f"{stage}_encoder")):
                 raise SystemExit(f"{flag} is the {stage} stage's dataset: it goes with --set ae.{stage}_encoder=true")
+            if source_ae.get(f"{stage}_encoder") and stage not in (args.reteach or ()):
+                raise SystemExit(f"{flag}: {args.init_from}'s {stage} encoder is reused as it is (no {stage} stage "
+                                 f"runs): add --reteach {stage} to teach it again on {path}")
             taught[stage] = load_dataset(path)
             use_model_units(taught[stage], chosen.model_units or dataset.scale)
     if args.rebuild_bank and not args.init_from:
@@ -115,7 +118,7 @@ def train_command(args) -> int:
     train(dataset, spectra, args.out, chosen, stop_after=args.stop_after, init_from=args.init_from,
           rebuild_bank=args.rebuild_bank, continue_ae=args.continue_ae, device=device, limits=limits,
           loader_workers=args.loader_workers, pose_dataset=taught.get("pose"),
-          body_dataset=taught.get("body"))
+          body_dataset=taught.get("body"), reteach=tuple(args.reteach or ()))
     log.info("training finished: %s", args.out)
     return 0
 
@@ -384,6 +387,10 @@ def main(argv=None) -> int:
     training.add_argument("--body-data", metavar="DATASET",
                           help="with ae.body_encoder: the body stage learns from this sim dataset's training "
                                "meshes (many distinct subjects) instead of DATASET's (default)")
+    training.add_argument("--reteach", action="append", choices=["pose", "body"],
+                          help="with --init-from: teach its AE's pose (or body) encoder again, from the start, "
+                               "on this run's settings (recipe.pose_components, --pose-data), then a new code "
+                               "bank (repeatable)")
     training.add_argument("--limit", type=int, help="use only the first N meshes")
     training.add_argument("--device", default="cpu", help="torch device to train on: cpu (default), cuda, cuda:1")
     training.add_argument("--ae-minutes", type=float, metavar="M",

@@ -37,29 +37,43 @@ log = logging.getLogger(__name__)
 class PoseTargets:
     """Per family, theta's mean and its top `components` principal axes over the training meshes,
     with each component's spread: a mesh's target is its theta on those axes, in units of the
-    spread (so every component weighs the same and a constant prediction scores 1)."""
+    spread (so every component weighs the same and a constant prediction scores 1).
+
+    `components` 0: every joint angle instead, each in units of its own spread (families with
+    fewer angles padded, `mask` marking each family's own columns): the whole pose, not its
+    main modes, for pose data whose bends are not a few (the prior's random poses)."""
 
     def __init__(self, truths: list[dict], components: int):
         if not truths or any("theta" not in t or "family" not in t for t in truths):
             raise ValueError("the pose stage needs the sim's ground truth (theta and family) of every training mesh")
+        if components < 0:
+            raise ValueError(f"pose components {components}: must be >= 0 (0: every joint angle)")
         self.families = sorted({t["family"] for t in truths})
         self.family = np.array([self.families.index(t["family"]) for t in truths])
-        self.components = components
-        rows = np.zeros((len(truths), components), np.float32)
+        width = components or max(len(t["theta"]) for t in truths)
+        self.components = width
+        rows = np.zeros((len(truths), width), np.float32)
+        mask = np.zeros_like(rows) if components == 0 else np.ones_like(rows)
         self.explained = {}
         for f, name in enumerate(self.families):
             members = np.nonzero(self.family == f)[0]
             theta = np.array([truths[i]["theta"] for i in members], np.float64)
-            if len(members) <= components:
-                raise ValueError(f"the pose stage needs more than {components} training meshes of family {name!r} "
-                                 f"(got {len(members)})")
+            if len(members) <= max(components, 1):
+                raise ValueError(f"the pose stage needs more than {max(components, 1)} training meshes of family "
+                                 f"{name!r} (got {len(members)})")
             centred = theta - theta.mean(0)
+            if components == 0:
+                spread = centred.std(0)
+                rows[members, :theta.shape[1]] = np.where(spread > 0, centred / np.maximum(spread, 1e-12), 0.0)
+                mask[members, :theta.shape[1]] = spread > 0
+                self.explained[name] = 1.0
+                continue
             _, values, axes = np.linalg.svd(centred, full_matrices=False)
             projected = centred @ axes[:components].T
             rows[members] = projected / (projected.std(0) + 1e-9)
             self.explained[name] = float((values[:components] ** 2).sum() / (values ** 2).sum())
         self.rows = torch.from_numpy(rows)
-        self.mask = torch.ones_like(self.rows)
+        self.mask = torch.from_numpy(mask)
 
 
 class BodyTargets:
@@ -103,8 +117,12 @@ def train_pose(ae, sampler, truths: list[dict], chosen, state: dict, save, progr
     weights) on views of the training meshes as the code bank draws them (`chosen.bank_view_share()`
     camera views), each turned by a random yaw and turned back by E_r's estimate."""
     targets = PoseTargets(truths, chosen.pose_components)
-    log.info("pose: theta's top %d components per family hold %s of its variance", targets.components,
-             ", ".join(f"{100 * share:.0f}% ({name})" for name, share in targets.explained.items()))
+    if chosen.pose_components:
+        log.info("pose: theta's top %d components per family hold %s of its variance", targets.components,
+                 ", ".join(f"{100 * share:.0f}% ({name})" for name, share in targets.explained.items()))
+    else:
+        log.info("pose: every joint angle of theta (%s)", ", ".join(
+            f"{name} {int(targets.mask[targets.family == f][0].sum())}" for f, name in enumerate(targets.families)))
     if state["iteration"] == 0 and "pose_heads" not in state and ae.config.pose_hidden in (None, ae.config.shape_hidden):
         ae.pose_encoder.load_state_dict(ae.shape_encoder.state_dict())
     teach(ae, "pose", ae.pose_encoder, ae.encode_pose, targets, sampler, chosen.pose_iterations, chosen.pose_batch,

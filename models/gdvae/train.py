@@ -286,7 +286,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
           stop_after: str | None = None, init_from: str | Path | None = None, rebuild_bank: bool = False,
           continue_ae: int = 0, device: str = "cpu", limits: StageLimits | None = None,
           loader_workers: int = 0, pose_dataset: MeshDataset | None = None,
-          body_dataset: MeshDataset | None = None) -> dict:
+          body_dataset: MeshDataset | None = None, reteach: tuple[str, ...] = ()) -> dict:
     """Runs (or resumes) the stages: AE, pose (with a pose encoder), body (with a body encoder),
     code bank, VAE. Returns the trained modules.
 
@@ -298,7 +298,9 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     budgets; `loader_workers`: processes that make AE batches ahead of the training step on a CPU
     (0: in the training process, on its device). `pose_dataset`: the pose stage's meshes (its
     training split; default `dataset`'s), e.g. many distinct poses where `dataset` is a paired grid
-    of few; `body_dataset` likewise the body stage's (many distinct subjects).
+    of few; `body_dataset` likewise the body stage's (many distinct subjects). `reteach` ("pose",
+    "body"): with `init_from`, teach the source's E_p or E_b again (new targets or data; each starts
+    as a new one does), then a new code bank.
     """
     limits = limits or StageLimits()
     limits.validate()
@@ -334,19 +336,20 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         chosen.ae_iterations += continue_ae
     chosen.vae = replace(chosen.vae, pose_input=chosen.ae.latent if chosen.ae.pose_encoder else 0,
                          body_input=chosen.ae.latent if chosen.ae.body_encoder else 0)
+    check_reteach(reteach, chosen, init_from)
     (run_dir / "recipe.json").write_text(json.dumps(asdict(chosen), indent=2, default=str))
     summary = dataset_summary(dataset)
     if chosen.ae.pose_encoder:  # what E_p was taught on (the bundle's manifest and model card say it)
         posed = pose_dataset or dataset
         summary["pose_stage"] = {"dataset": str(posed.root), "train_meshes": len(posed.indices("train")),
                                  "iterations": chosen.pose_iterations, "components": chosen.pose_components}
-        if init_from is not None and source_has_pose:  # E_p comes with the source's AE, not taught here
+        if init_from is not None and source_has_pose and "pose" not in reteach:  # E_p is the source's
             summary["pose_stage"] = source_stage(init_from, "pose_stage")
     if chosen.ae.body_encoder:  # what E_b was taught on, likewise
         bodies = body_dataset or dataset
         summary["body_stage"] = {"dataset": str(bodies.root), "train_meshes": len(bodies.indices("train")),
                                  "iterations": chosen.body_iterations}
-        if init_from is not None and source_has_body:
+        if init_from is not None and source_has_body and "body" not in reteach:
             summary["body_stage"] = source_stage(init_from, "body_stage")
     (run_dir / "dataset.json").write_text(json.dumps(summary, indent=2))
     torch.manual_seed(chosen.seed)
@@ -374,11 +377,13 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         if continue_ae > 0:
             state = {"stage": "ae", "iteration": source_iterations, "ae": source["ae"]}
             log.info("continuing the AE of %s for %d iterations (new code bank)", init_from, continue_ae)
-        elif rebuild_bank:
-            first = "pose" if adds_pose else "body" if adds_body else "bank"
-            state = {"stage": first, "iteration": 0, "ae": source["ae"]}
+        elif rebuild_bank or reteach:
+            teach = [stage for stage, added in (("pose", adds_pose), ("body", adds_body))
+                     if added or stage in reteach]
+            first = stage_after("ae", teach)
+            state = {"stage": first, "iteration": 0, "ae": source["ae"], "teach": teach}
             log.info("starting from the AE of %s (%snew code bank)", init_from,
-                     "" if first == "bank" else f"{first} stage, ")
+                     "".join(f"{stage} stage, " for stage in teach))
         else:
             state = {"stage": "vae", "iteration": 0, "ae": source["ae"], "bank": source["bank"]}
             log.info("starting from the AE and code bank of %s", init_from)
@@ -398,6 +403,11 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     ae = Autoencoder(chosen.ae)
     if "ae" in state:
         load_ae_state(ae, state["ae"])
+    if state["stage"] == "body" and state["iteration"] == 0 and "body" in reteach:
+        for module in ae.body_encoder.modules():  # a retaught E_b starts from random weights, as a new one
+            if hasattr(module, "reset_parameters"):
+                module.reset_parameters()
+    teach = state.get("teach", taught_stages(chosen.ae))
     stages = StageRecord(run_dir / "stages.json", str(device))
     sampler = None
     if state["stage"] in ("ae", "pose", "body", "bank"):  # the VAE trains on the code bank, without clouds
@@ -420,27 +430,27 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if state["stage"] == "ae":
         probe = ReconstructionProbe(dataset, train_indices, chosen, device)
         train_ae(ae, sampler, chosen, state, save, run_dir, device, limits.ae_seconds, loader_workers, stages, probe)
-        state = {"stage": stage_after("ae", chosen.ae), "iteration": 0}
+        state = {"stage": stage_after("ae", teach), "iteration": 0}
         save(state)
     if stop_after == "ae":
         return {"ae": ae}
     if state["stage"] == "pose":
         progress = Progress("pose", chosen.pose_iterations, run_dir / "log.jsonl", first_iteration=state["iteration"])
-        carried = {"start_vae": state["start_vae"]} if "start_vae" in state else {}
+        carried = {key: state[key] for key in ("start_vae", "teach") if key in state}
         posed, posed_indices, pose_sampler = taught_meshes("pose", pose_dataset, dataset, train_indices, sampler,
                                                            chosen, state["iteration"], device)
         train_pose(ae, pose_sampler, [posed.items[i].truth for i in posed_indices], chosen, state,
                    lambda extra: save({**extra, **carried}), progress, device, stages)
-        state = {"stage": stage_after("pose", chosen.ae), "iteration": 0, **carried}
+        state = {"stage": stage_after("pose", teach), "iteration": 0, **carried}
         save(state)
     if state["stage"] == "body":
         progress = Progress("body", chosen.body_iterations, run_dir / "log.jsonl", first_iteration=state["iteration"])
-        carried = {"start_vae": state["start_vae"]} if "start_vae" in state else {}
+        carried = {key: state[key] for key in ("start_vae", "teach") if key in state}
         bodies, body_indices, body_sampler = taught_meshes("body", body_dataset, dataset, train_indices, sampler,
                                                            chosen, state["iteration"], device)
         train_body(ae, body_sampler, [bodies.items[i].truth for i in body_indices], beta_ranges(bodies.root), chosen,
                    state, lambda extra: save({**extra, **carried}), progress, device, stages)
-        state = {"stage": "bank", "iteration": 0, **carried}
+        state = {"stage": "bank", "iteration": 0, **({"start_vae": state["start_vae"]} if "start_vae" in state else {})}
         save(state)
 
     pairing = None
@@ -630,11 +640,30 @@ def taught_meshes(stage: str, own: MeshDataset | None, dataset: MeshDataset, tra
                                       DepthCamera() if chosen.depth_camera_views else None, device)
 
 
-def stage_after(stage: str, ae: AEConfig) -> str:
-    """The stage that follows `stage` ("ae" or "pose") for an AE of this configuration."""
-    if stage == "ae" and ae.pose_encoder:
-        return "pose"
-    return "body" if ae.body_encoder else "bank"
+def taught_stages(ae: AEConfig) -> list[str]:
+    """The taught stages a new AE of this configuration goes through after its AE stage."""
+    return [stage for stage, present in (("pose", ae.pose_encoder), ("body", ae.body_encoder)) if present]
+
+
+def stage_after(stage: str, teach: list[str]) -> str:
+    """The stage that follows `stage` ("ae" or a taught stage) when the taught stages `teach` run."""
+    order = ["ae", *teach, "bank"]
+    return order[order.index(stage) + 1]
+
+
+def check_reteach(reteach: tuple[str, ...], chosen: Recipe, init_from) -> None:
+    """`reteach` names taught stages of the source's AE, and keeps no VAE encoder that reads their code."""
+    for stage in reteach:
+        if stage not in ("pose", "body"):
+            raise ValueError(f"reteach {stage!r}: the taught stages are pose and body")
+        if init_from is None:
+            raise ValueError(f"reteach {stage}: it teaches a source run's encoder again; it goes with init_from")
+        if not getattr(chosen.ae, f"{stage}_encoder"):
+            raise ValueError(f"reteach {stage}: the AE has no {stage} encoder (ae.{stage}_encoder)")
+        kept = {"pose": ("keep_extrinsic", "z_E"), "body": ("keep_intrinsic", "z_I")}[stage]
+        if getattr(chosen.vae, kept[0]):
+            raise ValueError(f"reteach {stage} changes the code {kept[1]}'s encoder reads, which vae.{kept[0]} keeps: "
+                             "train that encoder here (leave vae." + kept[0] + " out)")
 
 
 def load_ae_state(ae: Autoencoder, weights: dict) -> None:

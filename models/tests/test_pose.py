@@ -36,6 +36,56 @@ def test_pose_targets_are_each_family_s_top_components_in_units_of_their_spread(
         PoseTargets(truths(rng, "biped", 3, 6), components=3)
 
 
+def test_pose_targets_of_every_joint_angle_are_each_in_units_of_its_spread_and_padded_per_family():
+    rng = np.random.default_rng(1)
+    records = truths(rng, "quadruped", 40, 9) + truths(rng, "biped", 30, 6)
+    records[0]["theta"][4] = records[1]["theta"][4] = 0.0  # a joint a family never bends has no target
+    for record in records:
+        if record["family"] == "biped":
+            record["theta"][2] = 0.5
+    targets = PoseTargets(records, components=0)
+    assert targets.components == 9
+    rows, mask = targets.rows.numpy(), targets.mask.numpy()
+    biped, quadruped = targets.family == 0, targets.family == 1
+    assert (mask[biped][:, [0, 1, 3, 4, 5]] == 1).all() and (mask[biped][:, [2, 6, 7, 8]] == 0).all()
+    assert (mask[quadruped] == 1).all()
+    np.testing.assert_allclose(rows[quadruped].std(0), 1, atol=1e-4)
+    np.testing.assert_allclose(rows[biped][:, [0, 1, 3, 4, 5]].std(0), 1, atol=1e-4)
+    assert (rows[biped][:, [2, 6, 7, 8]] == 0).all()
+    # Each column is its own joint angle (not a mix of them): it follows that angle exactly.
+    theta = np.array([r["theta"] for r in records if r["family"] == "quadruped"])
+    assert np.corrcoef(rows[quadruped][:, 7], theta[:, 7])[0, 1] > 0.9999
+    with pytest.raises(ValueError, match=">= 0"):
+        PoseTargets(records, components=-1)
+
+
+def test_a_trained_pose_encoder_is_taught_again_on_every_joint_angle_with_reteach(paired_dataset, tmp_path, capsys):
+    source, run = tmp_path / "source", tmp_path / "run"
+    assert main(["train", str(paired_dataset), "--out", str(source), "--recipe", "smoke", "--regime", "paired",
+                 "--ae", "std", "--set", "ae.pose_encoder=true", "--set", "ae.body_encoder=true",
+                 "--set", "recipe.vae_batch=24"]) == 0
+    again = ["train", str(paired_dataset), "--out", str(run), "--recipe", "smoke", "--regime", "paired",
+             "--init-from", str(source), "--reteach", "pose", "--set", "recipe.pose_components=0",
+             "--set", "recipe.vae_batch=24"]
+    # keep_extrinsic keeps z_E's encoder, which reads the code being taught again.
+    assert main([*again[:3], str(tmp_path / "kept"), *again[4:], "--set", "vae.keep_extrinsic=true"]) != 0
+    assert "which vae.keep_extrinsic keeps" in capsys.readouterr().err
+    assert main(["train", str(paired_dataset), "--out", str(tmp_path / "fresh"), "--recipe", "smoke",
+                 "--reteach", "pose"]) != 0  # nothing to teach again
+    assert "it goes with init_from" in capsys.readouterr().err
+    assert main(again) == 0
+    stages = [json.loads(line)["stage"] for line in (run / "log.jsonl").read_text().splitlines()]
+    assert "pose" in stages and "body" not in stages and stages.index("pose") < stages.index("vae")
+    _, ae, _, state = load_run(run)
+    _, source_ae, _, _ = load_run(source)
+    assert not torch.equal(ae.pose_encoder.head.weight, source_ae.pose_encoder.head.weight)
+    assert torch.equal(ae.body_encoder.head.weight, source_ae.body_encoder.head.weight)
+    assert torch.equal(ae.shape_encoder.head.weight, source_ae.shape_encoder.head.weight)
+    assert not torch.equal(state["bank"]["x_p"], load_run(source)[3]["bank"]["x_p"])  # a new bank
+    recorded = json.loads((run / "dataset.json").read_text())["pose_stage"]
+    assert recorded["components"] == 0 and recorded["dataset"] == str(paired_dataset)
+
+
 def test_a_pose_encoder_added_to_a_trained_model_feeds_z_e_and_survives_export_and_import(paired_dataset, tmp_path,
                                                                                           inspect_with_node):
     source, run, bundle = tmp_path / "source", tmp_path / "run", tmp_path / "bundle"
