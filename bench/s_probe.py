@@ -5,7 +5,8 @@ evaluation split of fresh subjects in the sim's random poses (`make eval-split`,
 command with another seed to choose on):
 
 - `oracle RUN SPLIT`: S with the sim's truth in place of a code (z_E = theta, z_I = beta, each
-  alone and both), beside the run's own: how far each half of S can go;
+  alone and both), and with the taught encoders' own codes x_p and x_b (where the run has them) in
+  place of z_E and z_I, beside the run's own: how far each half of S can go, and what the VAE loses;
 - `taught RUN SPLIT --train DATASETS --target beta|theta --seconds S`: a narrow PointNet (32, 64,
   128) reading each cloud turned back by the run's own rotation estimate (E_p's frame) is taught
   the sim's normalised beta or its standardised theta (every joint angle, padded per family) for S
@@ -48,7 +49,9 @@ def split_codes(ae, vae, root: str) -> dict:
     codes = encode_all(ae, vae, clouds, rotations, None)
     with torch.no_grad():
         inputs = rotate(clouds, rotations)
-        canonical = rotate(inputs, quaternion_to_matrix(ae.encode_rotation(inputs)).transpose(-1, -2))
+        estimate = quaternion_to_matrix(ae.encode_rotation(inputs))
+        canonical = rotate(inputs, estimate.transpose(-1, -2))
+        codes.update(ae.taught_codes(inputs, estimate))  # x_p, x_b: what z_E's and z_I's encoders read
     truths = [dataset.items[i].truth for i in indices]
     ranges = beta_ranges(dataset.root)
     families = {}
@@ -58,7 +61,7 @@ def split_codes(ae, vae, root: str) -> dict:
             "rows": rows,
             "beta": normalised_beta(np.array([truths[k]["beta"] for k in rows], float), family, ranges),
             "theta": np.array([truths[k]["theta"] for k in rows], float),
-            **{key: codes[key][rows].numpy() for key in ("x_c", "mu_E", "mu_I")},
+            **{key: codes[key][rows].numpy() for key in ("x_c", "mu_E", "mu_I", "x_p", "x_b") if key in codes},
         }
     return {"canonical": canonical, "families": families}
 
@@ -77,6 +80,12 @@ def oracle(args, ae, vae) -> None:
         print(f"  z_E = theta               {score(part, part['theta'], part['mu_I'])}")
         print(f"  z_I = beta                {score(part, part['mu_E'], part['beta'])}")
         print(f"  z_E = theta, z_I = beta   {score(part, part['theta'], part['beta'])}")
+        if "x_p" in part:  # the pose encoder's own code in place of z_E (what z_E's encoder could keep)
+            print(f"  z_E = x_p                 {score(part, part['x_p'], part['mu_I'])}")
+        if "x_b" in part:
+            print(f"  z_I = x_b                 {score(part, part['mu_E'], part['x_b'])}")
+        if "x_p" in part and "x_b" in part:
+            print(f"  z_E = x_p, z_I = x_b      {score(part, part['x_p'], part['x_b'])}")
 
 
 def standardised(values: np.ndarray) -> np.ndarray:

@@ -41,13 +41,18 @@ class PoseTargets:
 
     `components` 0: every joint angle instead, each in units of its own spread (families with
     fewer angles padded, `mask` marking each family's own columns): the whole pose, not its
-    main modes, for pose data whose bends are not a few (the prior's random poses)."""
+    main modes, for pose data whose bends are not a few (the prior's random poses).
 
-    def __init__(self, truths: list[dict], components: int):
+    `whitened` False (what `vae.omega_pose` teaches mu_E, which has no head): the components keep
+    their relative sizes (radians on the principal axes), one scale per family making their total
+    variance `components`, so that distances between targets stay proportional to distances between
+    poses (what retrieval by the code reads) and their spread suits the prior."""
+
+    def __init__(self, truths: list[dict], components: int, whitened: bool = True):
         if not truths or any("theta" not in t or "family" not in t for t in truths):
             raise ValueError("the pose stage needs the sim's ground truth (theta and family) of every training mesh")
-        if components < 0:
-            raise ValueError(f"pose components {components}: must be >= 0 (0: every joint angle)")
+        if components < 0 or (components == 0 and not whitened):
+            raise ValueError(f"pose components {components}: must be >= 0 (0: every joint angle, whitened only)")
         self.families = sorted({t["family"] for t in truths})
         self.family = np.array([self.families.index(t["family"]) for t in truths])
         width = components or max(len(t["theta"]) for t in truths)
@@ -70,7 +75,10 @@ class PoseTargets:
                 continue
             _, values, axes = np.linalg.svd(centred, full_matrices=False)
             projected = centred @ axes[:components].T
-            rows[members] = projected / (projected.std(0) + 1e-9)
+            if whitened:
+                rows[members] = projected / (projected.std(0) + 1e-9)
+            else:
+                rows[members] = projected * np.sqrt(components / max((projected ** 2).sum(1).mean(), 1e-12))
             self.explained[name] = float((values[:components] ** 2).sum() / (values ** 2).sum())
         self.rows = torch.from_numpy(rows)
         self.mask = torch.from_numpy(mask)

@@ -33,11 +33,13 @@ from .data import DepthCamera, MeshDataset
 from .evaluate import beta_ranges
 from .geometry import chamfer, matrix_to_quaternion, quaternion_to_matrix, random_rotation_matrices, rotate
 from .paired import PairedBatches, Pairing
-from .pose import BodyTargets, train_body, train_pose
+from .pose import BodyTargets, PoseTargets, train_body, train_pose
 from .surface import PointSampler
 from .vae import LatentVAE, VAEConfig, vae_loss
 
 log = logging.getLogger(__name__)
+# The training-only heads of vae.omega_body: in checkpoints, never in a loaded model or a bundle.
+TRAINING_HEADS = ("body_heads.",)
 
 
 @dataclass
@@ -171,9 +173,9 @@ def load_run(run_dir: str | Path) -> tuple[Recipe, Autoencoder, LatentVAE | None
     vae_state = state.get("vae", state.get("imported_vae"))
     if vae_state is not None:
         spectrum = state["bank"]["spectrum"].shape[1] if "bank" in state else vae_config.spectrum
-        # vae.omega_body's heads exist only in training: the loaded model is the bundle's.
+        # vae.omega_body's and omega_pose's heads exist only in training: the loaded model is the bundle's.
         vae = LatentVAE(replace(vae_config, latent=ae_config.latent, spectrum=spectrum, body_heads=0))
-        vae.load_state_dict({k: v for k, v in vae_state.items() if not k.startswith("body_heads.")})
+        vae.load_state_dict({k: v for k, v in vae_state.items() if not k.startswith(TRAINING_HEADS)})
         vae.eval()
     return chosen, ae, vae, state
 
@@ -468,10 +470,13 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         raise ValueError(f"{init_from}: its code bank has no paired targets (it was built for another regime): "
                          "start from its AE with --rebuild-bank")
 
-    body_targets = None
-    if chosen.vae.omega_body > 0:  # mu_I taught beta (vae.omega_body): one row per training mesh
-        body_targets = BodyTargets([dataset.items[i].truth for i in train_indices], beta_ranges(dataset.root))
-    heads = body_targets.components * len(body_targets.families) if body_targets is not None else 0
+    taught = {}  # mu_I taught beta (vae.omega_body), mu_E theta (vae.omega_pose): one row per training mesh
+    truths = [dataset.items[i].truth for i in train_indices]
+    if chosen.vae.omega_body > 0:
+        taught["body"] = BodyTargets(truths, beta_ranges(dataset.root))
+    if chosen.vae.omega_pose > 0:
+        taught["pose"] = PoseTargets(truths, chosen.vae.n_extrinsic, whitened=False)
+    heads = taught["body"].components * len(taught["body"].families) if "body" in taught else 0
     vae = LatentVAE(replace(chosen.vae, latent=chosen.ae.latent, spectrum=spectra.shape[1], body_heads=heads))
     if "vae" in state:
         vae.load_state_dict(state["vae"])
@@ -484,7 +489,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     vae.to(device)
     if state["stage"] == "vae":
         train_vae(vae, bank, chosen, state, lambda extra: save({**extra, "bank": bank}), run_dir, len(train_indices),
-                  device, limits.vae_seconds, stages, body_targets)
+                  device, limits.vae_seconds, stages, taught)
         save({"stage": "done", "iteration": 0, "bank": bank, "vae": vae.state_dict()})
     return {"ae": ae.eval().cpu(), "vae": vae.eval().cpu()}
 
@@ -679,10 +684,10 @@ def load_start_vae(vae: LatentVAE, weights: dict, keep_extrinsic: bool = False, 
     code (or its z_I encoder a body code) the source's did not, that encoder starts afresh (only
     where it is trained here: not under keep_extrinsic, or keep_intrinsic); everything else must fit."""
     own = vae.state_dict()
-    weights = {k: v for k, v in weights.items() if not k.startswith("body_heads.") or k in own}  # training-only
+    weights = {k: v for k, v in weights.items() if not k.startswith(TRAINING_HEADS) or k in own}  # training-only
     fresh = {key for key, value in weights.items()
              if key.startswith(("extrinsic.", "intrinsic.")) and key in own and own[key].shape != value.shape}
-    fresh |= {key for key in own if key.startswith("body_heads.") and key not in weights}  # vae.omega_body's
+    fresh |= {key for key in own if key.startswith(TRAINING_HEADS) and key not in weights}  # vae.omega_body's
     for prefix, kept, flag, latent in (("extrinsic.", keep_extrinsic, "keep_extrinsic", "z_E"),
                                        ("intrinsic.", keep_intrinsic, "keep_intrinsic", "z_I")):
         changed = sorted(key for key in fresh if key.startswith(prefix))
@@ -780,9 +785,9 @@ def bank_batch(size: int, batch: int, copies: int, paired: bool, generator: torc
 
 
 def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, device=None, budget_seconds=None,
-              stages=None, body_targets=None) -> None:
-    """The VAE stage on the code bank. `body_targets` (pose.BodyTargets of the bank's meshes, in
-    its order): what `vae.omega_body` teaches mu_I."""
+              stages=None, taught: dict | None = None) -> None:
+    """The VAE stage on the code bank. `taught` ({"body": pose.BodyTargets, "pose": PoseTargets(whitened=False)} of
+    the bank's meshes, in its order): what `vae.omega_body` teaches mu_I and `omega_pose` mu_E."""
     optimizer = torch.optim.Adam(vae.trained_parameters(), lr=chosen.vae_learning_rate, weight_decay=chosen.vae_weight_decay,
                                  fused=fused_adam(device))
     schedule = Plateau(optimizer, chosen.vae_min_learning_rate)
@@ -809,11 +814,12 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
     on_device = {key: bank[key].to(device) for key in keys}
     triples = (PairedBatches(bank["pairing"], copies, chosen.seed + 1 + state["iteration"],
                              pose_pairs=vae.config.omega_pose_contrast > 0) if vae.config.paired else None)
-    if body_targets is not None:
-        if len(body_targets.rows) * copies != size:
-            raise ValueError(f"the body targets hold {len(body_targets.rows)} meshes, the code bank {size // copies}")
-        body_rows, body_mask = body_targets.rows.to(device), body_targets.mask.to(device)
-        body_family = torch.from_numpy(body_targets.family).to(device)
+    taught_on_device = {}
+    for name, targets in (taught or {}).items():
+        if len(targets.rows) * copies != size:
+            raise ValueError(f"the {name} targets hold {len(targets.rows)} meshes, the code bank {size // copies}")
+        taught_on_device[name] = {"rows": targets.rows.to(device), "mask": targets.mask.to(device),
+                                  "family": torch.from_numpy(targets.family).to(device)}
     vae.train()
     iteration, budget_ended = start, False
     for iteration in range(start, total):
@@ -826,14 +832,13 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
             batch, paired = bank_batch(size, chosen.vae_batch, copies, vae.config.omega_view > 0, generator).to(device), None
         warmup = vae.config.beta_warmup_iterations
         beta_scale = min(1.0, iteration / warmup) if warmup > 0 else 1.0
-        body = None
-        if body_targets is not None:
-            meshes_of = batch // copies
-            body = {"rows": body_rows[meshes_of], "mask": body_mask[meshes_of], "family": body_family[meshes_of]}
+        meshes_of = batch // copies
+        rows = {name: {key: value[meshes_of] for key, value in targets.items()}
+                for name, targets in taught_on_device.items()}
         losses = vae_loss(vae, on_device["q"][batch], on_device["x_c"][batch], on_device["spectrum"][batch],
                           dataset_size=size, beta_scale=beta_scale, paired=paired,
                           x_p=on_device["x_p"][batch] if "x_p" in on_device else None,
-                          x_b=on_device["x_b"][batch] if "x_b" in on_device else None, body=body)
+                          x_b=on_device["x_b"][batch] if "x_b" in on_device else None, taught=rows)
         optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
         torch.nn.utils.clip_grad_norm_(vae.trained_parameters(), 100.0)

@@ -99,6 +99,12 @@ class VAEConfig:
     # (beta parameters x families), set by `train` from the dataset.
     omega_body: float = 0.0
     body_heads: int = 0
+    # Not in the paper: mu_E taught the sim's pose directly, its mean squared error against the
+    # mesh's theta on its family's top n_extrinsic principal axes (pose.PoseTargets, `whitened`
+    # False: radians, so that distances in mu_E are distances between poses) added with this weight.
+    # No head: a head would leave mu_E's own geometry free, and retrieval by mu_E reads that
+    # geometry (models/EXPERIMENTS.md, "mu_E taught the pose"). 0: off.
+    omega_pose: float = 0.0
     # Not in the paper: z_I's encoder, the spectral flow and the rotation branch keep the weights
     # the VAE starts with (another run's or an imported bundle's VAE, `train --init-from`); only
     # z_E's encoder and the shape decoder train. A live pose code is then added to a model whose
@@ -133,11 +139,14 @@ class VAEConfig:
     def validate(self) -> None:
         if self.regime not in ("gdvae++", "fo", "paired"):
             raise ValueError(f"regime must be 'gdvae++', 'fo' or 'paired', got {self.regime!r}")
-        for name in ("omega_swap", "omega_contrast", "omega_pose_contrast", "omega_body"):
+        for name in ("omega_swap", "omega_contrast", "omega_pose_contrast", "omega_body", "omega_pose"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0 (0: off), got {getattr(self, name)}")
         if not self.contrast_temperature > 0:
             raise ValueError(f"contrast_temperature must be > 0, got {self.contrast_temperature}")
+        for weight, kept, code in (("omega_pose", "keep_extrinsic", "mu_E"), ("omega_body", "keep_intrinsic", "mu_I")):
+            if getattr(self, weight) > 0 and getattr(self, kept):
+                raise ValueError(f"{weight} teaches {code}, whose encoder {kept} holds fixed: use one or the other")
         if self.paired and self.regime == "gdvae++":
             raise ValueError("the paired terms decode z_I of x_c: use them with the 'paired' (or 'fo') regime")
         if self.pose_input < 0 or self.body_input < 0:
@@ -327,13 +336,14 @@ def view_consistency(mu_i: torch.Tensor) -> torch.Tensor:
 def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: torch.Tensor,
              dataset_size: int, with_jacobian: bool = True, beta_scale: float = 1.0,
              paired: dict | None = None, x_p: torch.Tensor | None = None,
-             x_b: torch.Tensor | None = None, body: dict | None = None) -> VAELosses:
+             x_b: torch.Tensor | None = None, taught: dict | None = None) -> VAELosses:
     """The full objective L_HF + L_lambda + L_F + L_D on a batch, in the configured regime.
     `beta_scale` multiplies the four HFVAE betas (the warm-up). With `omega_view` > 0 the batch
     must be pairs of views (`view_consistency`). With the paired terms on, the batch is paired
     triples and `paired` holds the swaps' target codes and each row's subject and family
-    (train.py, `paired_inputs`). With `omega_body` > 0, `body` holds each row's body targets
-    (`rows`, `mask`: pose.BodyTargets') and `family` (its index there)."""
+    (train.py, `paired_inputs`). With `omega_body` (`omega_pose`) > 0, `taught["body"]`
+    (`taught["pose"]`) holds each row's targets (`rows`, `mask`: pose.BodyTargets' or PoseTargets')
+    and `family` (its index there)."""
     c = model.config
     if c.paired and paired is None:
         raise ValueError("the paired regime's terms are on but the batch is not paired (train.py, paired_inputs)")
@@ -388,12 +398,17 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
             # The same contrast with the shared pose as the label: a pose is one family's.
             pose_contrast = identity_contrast(mu_e, paired["pose"], paired["family"], c.contrast_temperature)
     supervised = c.omega_swap * swap + c.omega_contrast * contrast + c.omega_pose_contrast * pose_contrast
-    body_error = mu_i.new_zeros(())
-    if c.omega_body > 0:
-        if body is None or model.body_heads is None:
-            raise ValueError("omega_body is on but the batch has no body targets (train.py, train_vae)")
-        body_error = family_head_error(model.body_heads(mu_i), body["rows"], body["mask"], body["family"])
-        supervised = supervised + c.omega_body * body_error
+    head_errors = {}  # through a head per family (body), or on the code itself (pose: one "family" of width n_E)
+    for name, weight, outputs in (("body", c.omega_body, model.body_heads(mu_i) if model.body_heads else None),
+                                  ("pose", c.omega_pose, mu_e)):
+        head_errors[name] = mu_i.new_zeros(())
+        if weight > 0:
+            targets = (taught or {}).get(name)
+            if targets is None or outputs is None:
+                raise ValueError(f"omega_{name} is on but the batch has no {name} targets (train.py, train_vae)")
+            family = targets["family"] if name == "body" else torch.zeros_like(targets["family"])
+            head_errors[name] = family_head_error(outputs, targets["rows"], targets["mask"], family)
+            supervised = supervised + weight * head_errors[name]
 
     covariance = disentanglement_penalty(c.covariance_form, [mu_r, mu_e, mean_i])
     # omega_J = 0 turns L_J off, and its cost (most of a step) with it.
@@ -406,6 +421,6 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
         "total": total, "reconstruction": reconstruction, "quaternion": rotation,
         **terms, "log_p_lambda": log_likelihood, "intrinsic_consistency": intrinsic,
         "spectrum_error": spectrum_error, "variance_nll": variance, "view_consistency": views, "covariance": covariance, "jacobian": jacobian,
-        "swap": swap, "identity_contrast": contrast, "pose_contrast": pose_contrast, "body": body_error,
+        "swap": swap, "identity_contrast": contrast, "pose_contrast": pose_contrast, **head_errors,
     }
     return VAELosses(total, LossParts(parts))

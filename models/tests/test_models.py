@@ -408,24 +408,33 @@ def test_the_code_bank_shows_partial_views_in_the_chosen_share():
         encode_bank(ae, Sampler(), spectra, replace(chosen, bank_partial_views=1.5))
 
 
-def test_the_body_term_is_zero_for_heads_that_name_beta_and_positive_otherwise():
+@pytest.mark.parametrize("name", ["body", "pose"])
+def test_a_taught_term_is_zero_for_codes_that_name_the_truth_and_positive_otherwise(name):
+    """vae.omega_body teaches mu_I beta through a linear head per family; omega_pose teaches mu_E
+    itself theta's principal coordinates (no head: its targets are n_E wide for every family)."""
     torch.manual_seed(0)
-    model = LatentVAE(replace(small_vae("fo"), omega_body=1.0, body_heads=2 * 3))  # 3 parameters, 2 families
+    config = replace(small_vae("fo"), omega_body=1.0, body_heads=2 * 3) if name == "body" else \
+        replace(small_vae("fo"), omega_pose=1.0)
+    model = LatentVAE(config)
     q = torch.nn.functional.normalize(torch.randn(8, 4), dim=-1)
     x_c, spectra = torch.randn(8, 24), torch.rand(8, 6).cumsum(-1) + 1
     model.flow.input.fit(spectra)
     family = torch.tensor([0, 1] * 4)
-    with pytest.raises(ValueError, match="no body targets"):
+    with pytest.raises(ValueError, match=f"no {name} targets"):
         vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False)
     with torch.no_grad():
-        (_, _, (mu_i, _)) = model.encode(q, x_c)
-        exact = model.body_heads(mu_i).view(8, 2, 3)[torch.arange(8), family]
-    mask = torch.ones(8, 3)
-    mask[family == 0, 2] = 0  # family 0 has two parameters: its padding is not scored
+        (_, (mu_e, _), (mu_i, _)) = model.encode(q, x_c)
+        exact = model.body_heads(mu_i).view(8, 2, 3)[torch.arange(8), family] if name == "body" else mu_e.clone()
+    mask = torch.ones_like(exact)
+    mask[family == 0, 2] = 0  # family 0 has fewer columns: its padding is not scored
     exact[family == 0, 2] = 5.0
-    body = {"rows": exact, "mask": mask, "family": family}
-    parts = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False, body=body).parts
-    assert parts["body"] == pytest.approx(0.0, abs=1e-10)
-    body["rows"] = exact + 0.5 * mask
-    parts = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False, body=body).parts
-    assert parts["body"] == pytest.approx(0.25, rel=1e-5)
+    targets = {"rows": exact, "mask": mask, "family": family}
+    parts = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False, taught={name: targets}).parts
+    assert parts[name] == pytest.approx(0.0, abs=1e-10)
+    targets["rows"] = exact + 0.5 * mask
+    parts = vae_loss(model, q, x_c, spectra, dataset_size=100, with_jacobian=False, taught={name: targets}).parts
+    assert parts[name] == pytest.approx(0.25, rel=1e-5)
+    # A term that teaches a code whose encoder is held fixed is refused.
+    kept = "keep_intrinsic" if name == "body" else "keep_extrinsic"
+    with pytest.raises(ValueError, match=kept):
+        replace(small_vae("fo"), **{f"omega_{name}": 1.0, kept: True}).validate()

@@ -59,6 +59,25 @@ def test_pose_targets_of_every_joint_angle_are_each_in_units_of_its_spread_and_p
         PoseTargets(records, components=-1)
 
 
+def test_pose_coordinates_keep_the_components_relative_sizes_so_code_distances_are_pose_distances():
+    rng = np.random.default_rng(2)
+    records = truths(rng, "quadruped", 60, 9) + truths(rng, "biped", 50, 6)
+    targets = PoseTargets(records, components=4, whitened=False)
+    rows = targets.rows.numpy()
+    for f, name in enumerate(targets.families):
+        mine = rows[targets.family == f]
+        theta = np.array([r["theta"] for r in records if r["family"] == name])
+        assert (mine ** 2).sum(1).mean() == pytest.approx(4.0, rel=1e-4)  # total variance = components
+        assert mine[:, 0].std() > 1.3 * mine[:, 3].std()  # not whitened (whitened: equal)
+        # Distances between rows are one scale times distances between poses on the principal axes.
+        centred = theta - theta.mean(0)
+        _, _, axes = np.linalg.svd(centred, full_matrices=False)
+        ratio = np.linalg.norm(mine[0] - mine[1:], axis=1) / np.linalg.norm((centred[0] - centred[1:]) @ axes[:4].T, axis=1)
+        np.testing.assert_allclose(ratio, ratio[0], rtol=1e-4)
+    with pytest.raises(ValueError, match="whitened only"):
+        PoseTargets(records, components=0, whitened=False)
+
+
 def test_a_trained_pose_encoder_is_taught_again_on_every_joint_angle_with_reteach(paired_dataset, tmp_path, capsys):
     source, run = tmp_path / "source", tmp_path / "run"
     assert main(["train", str(paired_dataset), "--out", str(source), "--recipe", "smoke", "--regime", "paired",
@@ -219,16 +238,23 @@ def test_a_body_encoder_added_to_a_pose_model_feeds_z_i_only_and_survives_export
     assert "z_I from a body encoder" in inspect_with_node(bundle)
 
 
-def test_mu_i_taught_beta_trains_on_the_bank_s_meshes_and_leaves_no_heads_in_the_bundle(paired_dataset, tmp_path):
+def test_mu_i_taught_beta_and_mu_e_theta_train_on_the_bank_s_meshes_and_leave_no_heads_in_the_bundle(
+        paired_dataset, tmp_path):
     run, bundle = tmp_path / "run", tmp_path / "bundle"
     assert main(["train", str(paired_dataset), "--out", str(run), "--recipe", "smoke", "--regime", "paired",
-                 "--ae", "std", "--set", "recipe.vae_batch=24", "--set", "vae.omega_body=10"]) == 0
+                 "--ae", "std", "--set", "recipe.vae_batch=24", "--set", "vae.omega_body=10",
+                 "--set", "vae.omega_pose=10"]) == 0
     logged = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
-    body = [row["body"] for row in logged if row.get("stage") == "vae" and "body" in row]
-    assert body and all(value > 0 for value in body)
+    for name in ("body", "pose"):
+        values = [row[name] for row in logged if row.get("stage") == "vae" and name in row]
+        assert values and all(value > 0 for value in values)
     state = torch.load(run / "checkpoint.pt", weights_only=False)
     assert any(key.startswith("body_heads.") for key in state["vae"])  # trained, and resumable
     _, _, vae, _ = load_run(run)
     assert vae.body_heads is None  # the trained model is the bundle's: the heads exist only in training
     assert main(["export", str(run), "--out", str(bundle)]) == 0
     assert import_bundle(bundle, tmp_path / "imported")["parity_max_diff"] < 1e-4
+    # A run that starts from this one's VAE drops its heads (keep_intrinsic: z_E trained on, taught theta again).
+    assert main(["train", str(paired_dataset), "--out", str(tmp_path / "next"), "--recipe", "smoke", "--regime",
+                 "paired", "--init-from", str(run), "--set", "vae.keep_intrinsic=true", "--set", "vae.omega_pose=5",
+                 "--set", "recipe.vae_batch=24"]) == 0
