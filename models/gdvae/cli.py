@@ -251,7 +251,9 @@ def export_command(args) -> int:
     training = {**summary, "ae_iterations": chosen.ae_iterations, "vae_iterations": chosen.vae_iterations,
                 "ae_batch": chosen.ae_batch, "vae_batch": chosen.vae_batch, "partial_views": chosen.partial_views,
                 "depth_camera_views": chosen.depth_camera_views,
-                "bank_partial_views": chosen.bank_view_share()}
+                "bank_partial_views": chosen.bank_view_share(),
+                # what the VAE taught its codes from the sim's truth (0: nothing), for the model card
+                "omega_pose": chosen.vae.omega_pose, "omega_body": chosen.vae.omega_body}
     training.update(trained_iterations(Path(args.run), chosen))
     calibration = None
     if args.calibrate and args.calibration_from:

@@ -228,6 +228,12 @@ def write_bundle(ae, vae, folder: str | Path, *, scale: float, recipe_name: str,
     return manifest
 
 
+def taught_pose(components) -> str:
+    """What the pose stage taught E_p, in words (`recipe.pose_components`; 0: every joint angle)."""
+    return "each of the sim's joint angles (in units of its spread)" if components == 0 else \
+        f"the top {components} principal components of the sim's joint angles"
+
+
 def model_card(manifest: dict) -> str:
     m, s, u, t = manifest["model"], manifest["sizes"], manifest["units"], manifest["training"]
     metrics = manifest["metrics"]
@@ -251,14 +257,19 @@ def model_card(manifest: dict) -> str:
         f"subjects; families {', '.join(t.get('families', [])) or '?'}.",
         f"AE iterations {t.get('ae_iterations', '?')}, VAE iterations {t.get('vae_iterations', '?')}.",
         *([f"z_E's encoder reads a pose encoder's code: E_p, which sees the cloud turned back by the estimated "
-           f"rotation, was taught the top {t['pose_stage'].get('components', '?')} principal components of the "
-           f"sim's joint angles per family for {t['pose_stage'].get('iterations', '?')} iterations on "
+           f"rotation, was taught {taught_pose(t['pose_stage'].get('components', '?'))} "
+           f"per family for {t['pose_stage'].get('iterations', '?')} iterations on "
            f"{t['pose_stage'].get('train_meshes', '?')} training meshes of {t['pose_stage'].get('dataset', '?')}."]
           if t.get("pose_stage") else []),
         *([f"z_I's encoder reads a body encoder's code: E_b, in the same frame, was taught the sim's body-shape "
            f"parameters (beta) per family for {t['body_stage'].get('iterations', '?')} iterations on "
            f"{t['body_stage'].get('train_meshes', '?')} training meshes of {t['body_stage'].get('dataset', '?')}."]
           if t.get("body_stage") else []),
+        *([f"mu_E was taught the pose directly (vae.omega_pose {t['omega_pose']:g}): each training mesh's joint "
+           "angles on its family's top principal axes, one coordinate per dimension of z_E."]
+          if t.get("omega_pose") else []),
+        *([f"mu_I was taught the body shape through linear heads (vae.omega_body {t['omega_body']:g})."]
+          if t.get("omega_body") else []),
         f"Partial views: {partial:.0%} of the AE's input copies were the side a camera sees"
         f"{', as the depth camera renders it (self-occlusion, stereo noise)' if t.get('depth_camera_views') else ''} "
         "(the AE still reconstructs the whole surface)." if partial else "Partial views: none (whole surfaces only).",
@@ -290,6 +301,15 @@ def model_card(manifest: dict) -> str:
                      f"{calibration['measured_on']}. The node's tracker applies it.")
     else:
         lines.append("- none: the node takes the encoder's z_I variances as reported (`export --calibrate`).")
+    projection = (calibration or {}).get("identity_projection")
+    if projection:
+        fitted = projection.get("fitted_on", {})
+        subjects = sum(fitted.get("subjects", {}).values()) if isinstance(fitted.get("subjects"), dict) else "?"
+        ratios = ", ".join(f"{v:.3g}" for v in fitted.get("between_within", []))
+        lines.append(f"- Identity projection (`python -m gdvae fit-identity`): {len(projection['matrix'])} directions "
+                     f"of x_c that tell subjects of one family apart on the node's own clouds, fitted on {subjects} "
+                     f"sim subjects ({fitted.get('frames', '?')} frames; between/within-subject ratios {ratios}). "
+                     "The node's tracker detects identity changes on it (models/README, \"Identity projection\").")
     lines += [
         "",
         "## Limits",

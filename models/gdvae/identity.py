@@ -108,4 +108,9 @@ def write_projection(bundle: str | pathlib.Path, fitted: dict, states: list[str]
         },
     }
     manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
+    card = pathlib.Path(bundle) / "MODEL_CARD.md"
+    if card.exists():  # an exported bundle's card says what its manifest now holds
+        from .export import model_card
+
+        card.write_text(model_card(manifest))
     return manifest_path

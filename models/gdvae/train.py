@@ -365,7 +365,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
         imported = "imported_from" in source  # batch norms folded by the export (import_bundle.py)
         if source.get("stage") == "ae":
             raise ValueError(f"{init_from}: its AE stage has not finished; nothing to start from")
-        if "bank" not in source and not (continue_ae > 0 or rebuild_bank):
+        if "bank" not in source and not (continue_ae > 0 or rebuild_bank or reteach):  # reteach builds a new bank
             raise ValueError(f"{init_from}: it has no code bank (an imported bundle?): "
                              "start from its AE with --rebuild-bank or --continue-ae N")
         if chosen.vae.keeps_start and continue_ae > 0:
@@ -373,7 +373,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
                              "its AE's codes: the AE cannot be continued in the same run")
         adds_pose = chosen.ae.pose_encoder and not any(k.startswith("pose_encoder.") for k in source["ae"])
         adds_body = chosen.ae.body_encoder and not any(k.startswith("body_encoder.") for k in source["ae"])
-        if (adds_pose or adds_body) and not (continue_ae > 0 or rebuild_bank):
+        if (adds_pose or adds_body) and not (continue_ae > 0 or rebuild_bank or reteach):
             raise ValueError(f"{init_from}: its AE has no {'pose' if adds_pose else 'body'} encoder; one is trained "
                              "here before a new code bank: add --rebuild-bank")
         if continue_ae > 0:

@@ -64,6 +64,18 @@ def test_fit_identity_writes_the_projection_into_the_manifest_and_keeps_the_rest
     assert projection["fitted_on"]["subjects"] == {"biped": 6, "quadruped": 6}
     assert written["calibration"]["z_I_variance_scale"] == 0.5 and written["files"] == manifest["files"]
     assert "3 directions of x_c fitted on 6 bipeds, 6 quadrupeds" in capsys.readouterr().out
+    assert not (bundle / "MODEL_CARD.md").exists()  # a card is rewritten, never made up
+    # An exported bundle's card is rewritten to name the projection.
+    manifest.update({"model": {"regime": "fo", "ae_type": "std", "supervision": "supervised", "recipe": "cpu"},
+                     "sizes": {"points": 256, "spectrum": 22, "x_c": WIDTH, "z_R": 3, "z_E": 10, "z_I": 22},
+                     "units": {"model_units_per_metre": 0.5, "up_axis": "+z", "rotation_mode": "yaw"},
+                     "training": {}, "metrics": {},
+                     "calibration": {"z_I_variance_scale": 0.5, "ratio_p10": 0.4, "ratio_p90": 0.6, "measured_on": "x"}})
+    (bundle / "manifest.json").write_text(json.dumps(manifest))
+    (bundle / "MODEL_CARD.md").write_text("an old card")
+    assert main(["fit-identity", str(bundle), str(tmp_path / "states.jsonl"), "--directions", "3"]) == 0
+    card = (bundle / "MODEL_CARD.md").read_text()
+    assert "Identity projection" in card and "3 directions of x_c" in card and "fitted on 12 sim subjects" in card
 
 
 def test_states_without_x_c_or_a_lone_subject_are_refused_with_the_reason(tmp_path, capsys):
