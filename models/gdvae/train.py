@@ -173,7 +173,7 @@ def load_run(run_dir: str | Path) -> tuple[Recipe, Autoencoder, LatentVAE | None
     vae_state = state.get("vae", state.get("imported_vae"))
     if vae_state is not None:
         spectrum = state["bank"]["spectrum"].shape[1] if "bank" in state else vae_config.spectrum
-        # vae.omega_body's and omega_pose's heads exist only in training: the loaded model is the bundle's.
+        # vae.omega_body's heads exist only in training: the loaded model is the bundle's.
         vae = LatentVAE(replace(vae_config, latent=ae_config.latent, spectrum=spectrum, body_heads=0))
         vae.load_state_dict({k: v for k, v in vae_state.items() if not k.startswith(TRAINING_HEADS)})
         vae.eval()
