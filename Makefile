@@ -4,6 +4,9 @@
 VENV := .venv
 PYTHON := $(VENV)/bin/python
 REQUIREMENTS := sim/requirements.txt models/pyproject.toml
+# pip keeps no second copy of the wheels it downloads (PyPI's torch brings ~4 GB of CUDA libraries
+# on Linux): a fresh `make test` needs about 12 GiB free, most of it the venv and target/.
+PIP := $(PYTHON) -m pip install --quiet --no-cache-dir
 
 # The node's demo: the shipped bundle on the shipped sample recording (30 Hz, original timing),
 # publishing on an embedded zenoh peer, with a line per state on stdout. Needs only ONNX Runtime.
@@ -137,16 +140,18 @@ sim: binaries
 onnxruntime: $(VENV)/.onnxruntime
 $(VENV)/.onnxruntime:
 	test -x $(PYTHON) || python3 -m venv $(VENV)
-	$(PYTHON) -m pip install --quiet onnxruntime==1.31.1
+	$(PIP) onnxruntime==1.31.1
 	touch $@
 
 # The project's Python environment, rebuilt when a requirements file changes.
 venv: $(VENV)/.installed
 $(VENV)/.installed: $(REQUIREMENTS)
+	@free=$$(df -Pk . | awk 'NR==2 {print int($$4 / 1048576)}'); \
+		if [ "$$free" -lt 12 ]; then echo "warning: $$free GiB free here; a fresh venv and build need about 12 GiB" >&2; fi
 	python3 -m venv $(VENV)
-	$(PYTHON) -m pip install --quiet --upgrade pip
-	$(PYTHON) -m pip install --quiet -r sim/requirements.txt
-	$(PYTHON) -m pip install --quiet -e 'models[test]'
+	$(PIP) --upgrade pip
+	$(PIP) -r sim/requirements.txt
+	$(PIP) -e 'models[test]'
 	touch $@
 
 # The committed samples (sim/samples/): regenerate them with exactly these commands.
