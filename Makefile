@@ -5,7 +5,7 @@ VENV := .venv
 PYTHON := $(VENV)/bin/python
 REQUIREMENTS := sim/requirements.txt models/pyproject.toml
 # pip keeps no second copy of the wheels it downloads (PyPI's torch brings ~4 GB of CUDA libraries
-# on Linux): a fresh `make test` needs about 12 GiB free, most of it the venv and target/.
+# on Linux): a clone after `make test` holds 9.6 GiB, most of it the venv and target/.
 PIP := $(PYTHON) -m pip install --quiet --no-cache-dir
 
 # The node's demo: the shipped bundle on the shipped sample recording (30 Hz, original timing),
