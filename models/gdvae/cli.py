@@ -71,7 +71,7 @@ def train_command(args) -> int:
     from .data import load_dataset
     from .spectral_report import dataset_spectra
     from .spectrum import SpectrumCache
-    from .train import StageLimits, recipe, source_model_units, train, use_model_units
+    from .train import StageLimits, check_source_bank, recipe, source_model_units, train, use_model_units
 
     chosen = recipe(args.recipe, regime=args.regime, kind=args.ae)
     if args.ae_iterations is not None:
@@ -94,6 +94,8 @@ def train_command(args) -> int:
     use_model_units(dataset, chosen.model_units)
     log.info("%s: %d meshes (%d train), scale %.4f model units per input unit", args.dataset, len(dataset.meshes),
              len(dataset.indices("train")), dataset.scale)
+    if args.init_from:  # before the spectra, which take minutes on a new dataset
+        check_source_bank(args.init_from, dataset, bool(args.continue_ae > 0 or args.rebuild_bank or args.reteach))
     spectra = dataset_spectra(dataset, chosen.spectrum_count, SpectrumCache(Path(args.dataset) / ".spectra"))
     taught = {}  # the pose and body stages' own datasets
     source_ae = json.loads((Path(args.init_from) / "recipe.json").read_text())["ae"] if args.init_from else {}

@@ -317,6 +317,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if init_from is not None:  # the reused AE is the source's: its configuration and how it was trained
+        check_source_bank(init_from, dataset, bool(continue_ae > 0 or rebuild_bank or reteach))
         source_recipe = json.loads((Path(init_from) / "recipe.json").read_text())
         source_ae = AEConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in source_recipe["ae"].items()})
         # A pose encoder may be added to the source's AE (the pose stage trains it here), not removed.
@@ -621,6 +622,24 @@ def train_ae(ae, sampler, chosen: Recipe, state, save, run_dir, device, budget_s
         iteration = total
     stages.finish("ae", iteration, total, time.monotonic() - started, budget_ended)
     ae.eval()
+
+
+def check_source_bank(init_from: str | Path, dataset: MeshDataset, builds_bank: bool) -> None:
+    """A run that starts from `init_from`'s code bank (no --rebuild-bank, --continue-ae or
+    --reteach) trains its VAE on the source's encoded training meshes, row for row with this
+    dataset's ground truth: refused, before any work, when the two datasets are not the same."""
+    if builds_bank:
+        return
+    recorded = Path(init_from) / "dataset.json"
+    if not recorded.exists():
+        return  # an imported bundle: it has no bank, which train() says
+    source = json.loads(recorded.read_text())
+    here = {"dataset": str(Path(dataset.root).resolve()), "train_meshes": len(dataset.indices("train"))}
+    there = {"dataset": str(Path(source["dataset"]).resolve()), "train_meshes": source.get("train_meshes")}
+    if here != there:
+        raise ValueError(f"{init_from}'s code bank holds the codes of {there['train_meshes']} training meshes of "
+                         f"{there['dataset']}, not of {dataset.root} ({here['train_meshes']}): add --rebuild-bank "
+                         "to encode this dataset's meshes with its AE")
 
 
 def source_stage(init_from: str | Path, key: str) -> dict:

@@ -265,3 +265,19 @@ def test_mu_i_taught_beta_and_mu_e_theta_train_on_the_bank_s_meshes_and_leave_no
     assert main(["train", str(paired_dataset), "--out", str(tmp_path / "next"), "--recipe", "smoke", "--regime",
                  "paired", "--init-from", str(run), "--set", "vae.keep_intrinsic=true", "--set", "vae.omega_pose=5",
                  "--set", "recipe.vae_batch=24"]) == 0
+
+
+def test_a_run_started_from_another_run_s_code_bank_on_another_dataset_is_refused_before_any_work(
+        paired_dataset, tmp_path, capsys):
+    run, other = tmp_path / "run", tmp_path / "other"
+    assert main(["train", str(paired_dataset), "--out", str(run), "--recipe", "smoke", "--regime", "paired",
+                 "--ae", "std", "--set", "recipe.vae_batch=24"]) == 0
+    shutil.copytree(paired_dataset, other)  # the bank's rows are the source's training meshes, row for row
+    shutil.rmtree(other / ".spectra", ignore_errors=True)
+    started = ["train", str(other), "--out", str(tmp_path / "next"), "--recipe", "smoke", "--regime", "paired",
+               "--init-from", str(run), "--set", "vae.keep_intrinsic=true", "--set", "recipe.vae_batch=24"]
+    assert main(started) != 0
+    error = capsys.readouterr().err
+    assert "code bank holds the codes of" in error and "--rebuild-bank" in error
+    assert not (other / ".spectra").exists() and not (tmp_path / "next" / "checkpoint.pt").exists()
+    assert main([*started, "--rebuild-bank"]) == 0  # a new bank of this dataset's meshes
