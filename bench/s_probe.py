@@ -61,7 +61,7 @@ def split_codes(ae, vae, root: str) -> dict:
             "rows": rows,
             "beta": normalised_beta(np.array([truths[k]["beta"] for k in rows], float), family, ranges),
             "theta": np.array([truths[k]["theta"] for k in rows], float),
-            **{key: codes[key][rows].numpy() for key in ("x_c", "mu_E", "mu_I", "x_p", "x_b") if key in codes},
+            **{key: codes[key][rows].numpy() for key in ("x_c", "mu_E", "mu_I", "x_p", "x_b") if codes.get(key) is not None},
         }
     return {"canonical": canonical, "families": families}
 
