@@ -255,7 +255,8 @@ def export_command(args) -> int:
                 "depth_camera_views": chosen.depth_camera_views,
                 "bank_partial_views": chosen.bank_view_share(),
                 # what the VAE taught its codes from the sim's truth (0: nothing), for the model card
-                "omega_pose": chosen.vae.omega_pose, "omega_body": chosen.vae.omega_body}
+                "omega_pose": chosen.vae.omega_pose, "omega_body": chosen.vae.omega_body,
+                "body_direct": chosen.vae.body_direct}
     training.update(trained_iterations(Path(args.run), chosen))
     calibration = None
     if args.calibrate and args.calibration_from:

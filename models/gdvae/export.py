@@ -268,7 +268,9 @@ def model_card(manifest: dict) -> str:
         *([f"mu_E was taught the pose directly (vae.omega_pose {t['omega_pose']:g}): each training mesh's joint "
            "angles on its family's top principal axes, one coordinate per dimension of z_E."]
           if t.get("omega_pose") else []),
-        *([f"mu_I was taught the body shape through linear heads (vae.omega_body {t['omega_body']:g})."]
+        *([f"mu_I was taught the body shape (vae.omega_body {t['omega_body']:g}) "
+           + ("directly: its first units are each training mesh's body-shape parameters, normalised per family."
+              if t.get("body_direct") else "through linear heads.")]
           if t.get("omega_body") else []),
         f"Partial views: {partial:.0%} of the AE's input copies were the side a camera sees"
         f"{', as the depth camera renders it (self-occlusion, stereo noise)' if t.get('depth_camera_views') else ''} "

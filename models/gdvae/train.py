@@ -478,6 +478,11 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if chosen.vae.omega_pose > 0:
         taught["pose"] = PoseTargets(truths, chosen.vae.n_extrinsic, whitened=False)
     heads = taught["body"].components * len(taught["body"].families) if "body" in taught else 0
+    if chosen.vae.body_direct and "body" in taught:  # (without omega_body, the VAE's validation refuses it)
+        if taught["body"].components > chosen.vae.n_intrinsic:
+            raise ValueError(f"vae.body_direct: beta has {taught['body'].components} parameters, z_I only "
+                             f"{chosen.vae.n_intrinsic} units")
+        heads = 0
     vae = LatentVAE(replace(chosen.vae, latent=chosen.ae.latent, spectrum=spectra.shape[1], body_heads=heads))
     if "vae" in state:
         vae.load_state_dict(state["vae"])

@@ -99,6 +99,10 @@ class VAEConfig:
     # (beta parameters x families), set by `train` from the dataset.
     omega_body: float = 0.0
     body_heads: int = 0
+    # With omega_body: no head; mu_I's first units (one per beta parameter, padded per family) are
+    # regressed on the normalised beta directly, so that distances in mu_I are distances between
+    # bodies, as omega_pose makes them between poses in mu_E.
+    body_direct: bool = False
     # Not in the paper: mu_E taught the sim's pose directly, its mean squared error against the
     # mesh's theta on its family's top n_extrinsic principal axes (pose.PoseTargets, `whitened`
     # False: radians, so that distances in mu_E are distances between poses) added with this weight.
@@ -144,6 +148,8 @@ class VAEConfig:
                 raise ValueError(f"{name} must be >= 0 (0: off), got {getattr(self, name)}")
         if not self.contrast_temperature > 0:
             raise ValueError(f"contrast_temperature must be > 0, got {self.contrast_temperature}")
+        if self.body_direct and not self.omega_body > 0:
+            raise ValueError("body_direct says how omega_body teaches mu_I: it goes with omega_body > 0")
         for weight, kept, code in (("omega_pose", "keep_extrinsic", "mu_E"), ("omega_body", "keep_intrinsic", "mu_I")):
             if getattr(self, weight) > 0 and getattr(self, kept):
                 raise ValueError(f"{weight} teaches {code}, whose encoder {kept} holds fixed: use one or the other")
@@ -398,15 +404,18 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
             # The same contrast with the shared pose as the label: a pose is one family's.
             pose_contrast = identity_contrast(mu_e, paired["pose"], paired["family"], c.contrast_temperature)
     supervised = c.omega_swap * swap + c.omega_contrast * contrast + c.omega_pose_contrast * pose_contrast
-    head_errors = {}  # through a head per family (body), or on the code itself (pose: one "family" of width n_E)
-    for name, weight, outputs in (("body", c.omega_body, model.body_heads(mu_i) if model.body_heads else None),
-                                  ("pose", c.omega_pose, mu_e)):
+    head_errors = {}  # through a head per family (body), or on the code's first units (pose; body_direct)
+    for name, weight, code in (("body", c.omega_body, mu_i), ("pose", c.omega_pose, mu_e)):
         head_errors[name] = mu_i.new_zeros(())
         if weight > 0:
             targets = (taught or {}).get(name)
+            through_heads = name == "body" and not c.body_direct
+            outputs = (model.body_heads(code) if model.body_heads else None) if through_heads else code
             if targets is None or outputs is None:
                 raise ValueError(f"omega_{name} is on but the batch has no {name} targets (train.py, train_vae)")
-            family = targets["family"] if name == "body" else torch.zeros_like(targets["family"])
+            family = targets["family"] if through_heads else torch.zeros_like(targets["family"])
+            if not through_heads:  # one shared layout: the code's first units, as many as the targets' columns
+                outputs = outputs[:, :targets["rows"].shape[-1]]
             head_errors[name] = family_head_error(outputs, targets["rows"], targets["mask"], family)
             supervised = supervised + weight * head_errors[name]
 

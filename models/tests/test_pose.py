@@ -281,3 +281,19 @@ def test_a_run_started_from_another_run_s_code_bank_on_another_dataset_is_refuse
     assert "code bank holds the codes of" in error and "--rebuild-bank" in error
     assert not (other / ".spectra").exists() and not (tmp_path / "next" / "checkpoint.pt").exists()
     assert main([*started, "--rebuild-bank"]) == 0  # a new bank of this dataset's meshes
+
+
+def test_mu_i_taught_beta_directly_has_no_heads_and_the_model_card_says_so(paired_dataset, tmp_path, capsys):
+    run, bundle = tmp_path / "run", tmp_path / "bundle"
+    assert main(["train", str(paired_dataset), "--out", str(run), "--recipe", "smoke", "--regime", "paired",
+                 "--ae", "std", "--set", "recipe.vae_batch=24", "--set", "vae.omega_body=10",
+                 "--set", "vae.body_direct=true"]) == 0
+    logged = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [row["body"] for row in logged if row.get("stage") == "vae" and "body" in row][-1] > 0
+    assert not any(key.startswith("body_heads.") for key in torch.load(run / "checkpoint.pt", weights_only=False)["vae"])
+    assert main(["export", str(run), "--out", str(bundle)]) == 0
+    assert "mu_I was taught the body shape (vae.omega_body 10) directly" in (bundle / "MODEL_CARD.md").read_text()
+    capsys.readouterr()
+    assert main(["train", str(paired_dataset), "--out", str(tmp_path / "no"), "--recipe", "smoke",
+                 "--set", "vae.body_direct=true"]) != 0  # how omega_body teaches: nothing without it
+    assert "body_direct says how omega_body teaches mu_I" in capsys.readouterr().err
