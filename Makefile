@@ -147,7 +147,7 @@ $(VENV)/.onnxruntime:
 venv: $(VENV)/.installed
 $(VENV)/.installed: $(REQUIREMENTS)
 	@free=$$(df -Pk . | awk 'NR==2 {print int($$4 / 1048576)}'); \
-		if [ "$$free" -lt 12 ]; then echo "warning: $$free GiB free here; a fresh venv and build need about 12 GiB" >&2; fi
+		if [ "$$free" -lt 12 ]; then echo "warning: $$free GiB free here; a fresh venv and build take about 10 GiB" >&2; fi
 	python3 -m venv $(VENV)
 	$(PIP) --upgrade pip
 	$(PIP) -r sim/requirements.txt
