@@ -88,6 +88,7 @@ def train_command(args) -> int:
         apply_setting(chosen, assignment)
     chosen.ae.supervised = not args.unsupervised
     chosen.ae.full_rotations = args.full_rotations
+    chosen.vae.validate()  # refused now, not after the spectra and the AE stage
     dataset = load_dataset(args.dataset, limit=args.limit)
     if args.init_from and chosen.model_units is None:
         chosen.model_units = source_model_units(args.init_from)

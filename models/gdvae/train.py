@@ -306,6 +306,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     """
     limits = limits or StageLimits()
     limits.validate()
+    chosen.vae.validate()  # the VAE's settings are refused before the AE stage, not after it
     device = torch.device(device)
     if loader_workers < 0:
         raise ValueError(f"loader workers {loader_workers}: must be >= 0")

@@ -297,3 +297,4 @@ def test_mu_i_taught_beta_directly_has_no_heads_and_the_model_card_says_so(paire
     assert main(["train", str(paired_dataset), "--out", str(tmp_path / "no"), "--recipe", "smoke",
                  "--set", "vae.body_direct=true"]) != 0  # how omega_body teaches: nothing without it
     assert "body_direct says how omega_body teaches mu_I" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()  # refused before any work, not after the AE stage
