@@ -410,12 +410,12 @@ def vae_loss(model: LatentVAE, q: torch.Tensor, x_c: torch.Tensor, spectrum: tor
         if weight > 0:
             targets = (taught or {}).get(name)
             through_heads = name == "body" and not c.body_direct
-            outputs = (model.body_heads(code) if model.body_heads else None) if through_heads else code
-            if targets is None or outputs is None:
+            if targets is None or (through_heads and model.body_heads is None):
                 raise ValueError(f"omega_{name} is on but the batch has no {name} targets (train.py, train_vae)")
-            family = targets["family"] if through_heads else torch.zeros_like(targets["family"])
-            if not through_heads:  # one shared layout: the code's first units, as many as the targets' columns
-                outputs = outputs[:, :targets["rows"].shape[-1]]
+            if through_heads:
+                outputs, family = model.body_heads(code), targets["family"]
+            else:  # one shared layout: the code's first units, as many as the targets' columns
+                outputs, family = code[:, :targets["rows"].shape[-1]], torch.zeros_like(targets["family"])
             head_errors[name] = family_head_error(outputs, targets["rows"], targets["mask"], family)
             supervised = supervised + weight * head_errors[name]
 
