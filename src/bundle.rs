@@ -42,10 +42,28 @@ pub struct Calibration {
     /// them (absent: on z_I).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub identity_projection: Option<IdentityProjection>,
+    /// How far one subject's z_I lies from its mean over its poses and camera views (root mean
+    /// square, median over subjects; model units): the unit of the tracker's z_I distances and
+    /// variance floor (`[track]` min_shape_variance, `[track.objects]` shape_scale and
+    /// reid_distance). Absent (bundles calibrated before it was measured):
+    /// [`UNCALIBRATED_Z_I_SPREAD`].
+    #[serde(rename = "z_I_spread", default, skip_serializing_if = "Option::is_none")]
+    pub z_i_spread: Option<f32>,
 }
+
+/// The z_I spread assumed for a bundle whose calibration does not give one: h200-fo-theta's
+/// (`python -m gdvae export --calibrate /work/data/sim-grid150` measures 0.3413), the bundle with
+/// which the tracker's z_I settings were chosen, so that they keep their meaning for the bundles
+/// shipped before the spread was measured.
+pub const UNCALIBRATED_Z_I_SPREAD: f32 = 0.3413;
 
 impl Calibration {
     /// The identity projection's rows as the tracker takes them (`[track]` identity_projection).
+    /// The unit of the tracker's z_I distances: the measured spread, else the assumed one.
+    pub fn z_i_unit(&self) -> f32 {
+        self.z_i_spread.unwrap_or(UNCALIBRATED_Z_I_SPREAD)
+    }
+
     pub fn identity_directions(&self) -> Option<std::sync::Arc<Vec<Vec<f32>>>> {
         self.identity_projection
             .as_ref()
@@ -58,6 +76,7 @@ impl Default for Calibration {
         Self {
             z_i_variance_scale: 1.0,
             identity_projection: None,
+            z_i_spread: None,
         }
     }
 }
@@ -216,6 +235,11 @@ impl Bundle {
         let scale = m.calibration.z_i_variance_scale;
         if !(scale.is_finite() && scale > 0.0) {
             return Err(self.unsupported(format!("calibration z_I_variance_scale = {scale} must be positive")));
+        }
+        if let Some(spread) = m.calibration.z_i_spread {
+            if !(spread.is_finite() && spread > 0.0) {
+                return Err(self.unsupported(format!("calibration z_I_spread = {spread} must be positive")));
+            }
         }
         if let Some(projection) = &m.calibration.identity_projection {
             let wrong = if projection.input != "x_c" {

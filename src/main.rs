@@ -452,6 +452,13 @@ fn inspect_model(bundle: &Path, load: bool, onnxruntime: Option<&Path>) -> Resul
         "calibration: z_I variances x {} (1: none measured; see models/README, bundle format)",
         m.calibration.z_i_variance_scale
     );
+    match m.calibration.z_i_spread {
+        Some(spread) => println!("calibration: z_I spread {spread} (the unit of the tracker's z_I distances)"),
+        None => println!(
+            "calibration: no z_I spread measured; the tracker assumes {}",
+            gdvae_node::bundle::UNCALIBRATED_Z_I_SPREAD
+        ),
+    }
     match &m.calibration.identity_projection {
         Some(p) => println!(
             "calibration: identity changes on {} directions of {} (fitted on {} subjects, {} frames)",

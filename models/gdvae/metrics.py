@@ -144,9 +144,14 @@ def variance_calibration(means: np.ndarray, log_variances: np.ndarray, groups) -
     variance. `z_I_variance_scale` is the median over dimensions: 1 when the encoder's variances
     are right, < 1 when they are wider than the spread."""
     groups = np.asarray(groups)
-    spread = [means[groups == g].var(0) for g in np.unique(groups) if (groups == g).sum() >= 2]
-    if not spread:
+    members = [means[groups == g] for g in np.unique(groups) if (groups == g).sum() >= 2]
+    if not members:
         raise ValueError("variance calibration needs a group with two or more codes")
+    spread = [codes.var(0) for codes in members]
     ratio = np.mean(spread, 0) / np.exp(log_variances).mean(0)
+    # The unit of the node's z_I distances ([track.objects]): how far a group's codes lie from
+    # their mean (root mean square), the median over groups.
+    wander = [np.sqrt(((codes - codes.mean(0)) ** 2).sum(1).mean()) for codes in members]
     return {"z_I_variance_scale": float(np.median(ratio)), "ratio_p10": float(np.quantile(ratio, 0.1)),
-            "ratio_p90": float(np.quantile(ratio, 0.9)), "groups": len(spread), "codes": int(len(means))}
+            "ratio_p90": float(np.quantile(ratio, 0.9)), "z_I_spread": float(np.median(wander)),
+            "groups": len(spread), "codes": int(len(means))}

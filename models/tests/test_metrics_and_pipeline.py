@@ -122,8 +122,9 @@ def test_smoke_training_evaluation_and_export(tiny_dataset, tmp_path):
     calibrated = tmp_path / "calibrated"
     assert main(["export", str(run), "--out", str(calibrated), "--calibrate", str(tiny_dataset)]) == 0
     calibration = json.loads((calibrated / "manifest.json").read_text())["calibration"]
-    assert calibration["z_I_variance_scale"] > 0 and calibration["groups"] >= 1
+    assert calibration["z_I_variance_scale"] > 0 and calibration["groups"] >= 1 and calibration["z_I_spread"] > 0
     assert "z_I variances x" in (calibrated / "MODEL_CARD.md").read_text()
+    assert "z_I spread" in (calibrated / "MODEL_CARD.md").read_text()
 
     import onnxruntime as ort
 
@@ -226,6 +227,8 @@ def test_variance_calibration_is_the_within_subject_spread_over_the_reported_var
     reported = np.full((len(subjects), 6), np.log(0.04))  # the encoder says 0.04: 4 times too wide
     measured = variance_calibration(means, reported, subjects)
     assert abs(measured["z_I_variance_scale"] - 0.25) < 0.02, measured
+    # A subject's codes lie 0.1 x sqrt(6) from its centre (root mean square over 6 dimensions).
+    assert abs(measured["z_I_spread"] - 0.1 * np.sqrt(6)) < 0.01, measured
     assert measured["groups"] == 40 and measured["codes"] == 2000
     # Subjects seen once say nothing about the spread.
     with pytest.raises(ValueError, match="two or more"):

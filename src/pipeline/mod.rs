@@ -263,6 +263,16 @@ pub fn run(
             config.track.shape_variance_scale / calibration,
             config.track.shape_variance_scale
         );
+        // The config's z_I distances are in z_I spreads; the bundle says how wide its z_I is.
+        let spread = bundle.manifest.calibration.z_i_unit();
+        config.track = config.track.in_model_units(spread);
+        match bundle.manifest.calibration.z_i_spread {
+            Some(_) => log::info!("track: z_I distances in spreads of {spread} (bundle calibration)"),
+            None => log::info!(
+                "track: z_I distances in spreads of {spread} (the bundle's calibration has no z_I_spread; \
+                 h200-fo-theta's is assumed)"
+            ),
+        }
         config.track.identity_projection = bundle.manifest.calibration.identity_directions();
         let t = &config.track;
         let (drift, threshold) = t.cusum();

@@ -40,7 +40,8 @@ pub struct AssociationSettings {
     pub max_speed_mps: f32,
     /// Weight of the z_I distance against the position's in a pair's cost.
     pub shape_weight: f32,
-    /// The z_I distance (Euclidean, model units) that costs as much as a whole gate.
+    /// The z_I distance (Euclidean, in z_I spreads: the bundle's `calibration.z_I_spread`) that
+    /// costs as much as a whole gate.
     pub shape_scale: f32,
 
     /// Frames in a row a tentative track needs to be confirmed.
@@ -49,7 +50,8 @@ pub struct AssociationSettings {
     pub lost_s: f64,
     /// How long (s) an ended track can be re-identified.
     pub memory_s: f64,
-    /// Largest z_I distance between a new track and an ended one for it to take the old id.
+    /// Largest z_I distance (in z_I spreads) between a new track and an ended one for it to take
+    /// the old id.
     pub reid_distance: f32,
     /// A new track whose z_I is not within `reid_distance` of an ended track's but within
     /// [`REID_WAIT_REACH`] times it (an object coming back into view, seen in part at first)
@@ -77,11 +79,11 @@ impl Default for AssociationSettings {
             gate_m: 0.4,
             max_speed_mps: 2.5,
             shape_weight: 1.0,
-            shape_scale: 1.0,
+            shape_scale: 2.93,
             birth_frames: 3,
             lost_s: 1.0,
             memory_s: 10.0,
-            reid_distance: 1.0,
+            reid_distance: 2.93,
             reid_wait_s: 0.5,
             merge_ratio: 1.4,
             fragment_m: 0.5,

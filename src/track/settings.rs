@@ -45,7 +45,8 @@ pub struct TrackSettings {
     /// A change needs at least this many frames of evidence.
     pub switch_frames: usize,
     /// Floor on each fused z_I variance, so the filter never becomes certain beyond what
-    /// correlated frames justify (and follows slow drift).
+    /// correlated frames justify (and follows slow drift). In squared z_I spreads (the bundle's
+    /// `calibration.z_I_spread`, [`TrackSettings::in_model_units`]).
     pub min_shape_variance: f32,
     /// Multiplier on the encoder's z_I variances after the bundle's own calibration (manifest
     /// `calibration`): the sensor's share (frame-to-frame jitter the kit's views do not have).
@@ -122,7 +123,7 @@ impl Default for TrackSettings {
         Self {
             shape_gate: 2.0,
             switch_frames: 5,
-            min_shape_variance: 4e-4,
+            min_shape_variance: 3.434e-3,
             shape_variance_scale: 2.2,
             change_detector: ChangeDetector::Cusum,
             cusum_drift: 3.0,
@@ -157,6 +158,17 @@ impl Default for TrackSettings {
 }
 
 impl TrackSettings {
+    /// The settings with their z_I distances, given in z_I spreads (how far one subject's z_I
+    /// wanders over its poses and views), turned into model units for a bundle whose spread is
+    /// `spread`: a bundle whose z_I is twice as wide gets twice the distances, and the same
+    /// behaviour. `min_shape_variance` (squared), `objects.shape_scale`, `objects.reid_distance`.
+    pub fn in_model_units(mut self, spread: f32) -> Self {
+        self.min_shape_variance *= spread * spread;
+        self.objects.shape_scale *= spread;
+        self.objects.reid_distance *= spread;
+        self
+    }
+
     /// The identity directions the shape filter works on: the bundle's, unless
     /// `use_identity_projection` is off (None: on z_I).
     pub fn identity_directions(&self) -> Option<&IdentityDirections> {

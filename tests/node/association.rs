@@ -1,7 +1,15 @@
 //! Several objects in one stream (`track::association`): synthetic tracks whose answers are known
 //! (paths that cross, an occlusion, a return, a glimpse), and the Hungarian assignment itself.
 
+use gdvae_node::bundle::UNCALIBRATED_Z_I_SPREAD;
 use gdvae_node::track::association::{assign, Associated, AssociationSettings, Associator, Candidate, TrackEvent};
+use gdvae_node::track::TrackSettings;
+
+/// The default settings in model units for a bundle of the assumed z_I spread (as the pipeline
+/// turns them for a bundle): the z_I codes below are written at that scale.
+fn model_units() -> AssociationSettings {
+    TrackSettings::default().in_model_units(UNCALIBRATED_Z_I_SPREAD).objects
+}
 
 const FPS: f64 = 30.0;
 
@@ -50,7 +58,7 @@ fn sorted(mut pairs: Vec<(usize, usize)>) -> Vec<(usize, usize)> {
 
 #[test]
 fn one_object_is_born_after_the_birth_frames_and_keeps_its_id() {
-    let mut a = Associator::new(AssociationSettings::default());
+    let mut a = Associator::new(model_units());
     let frames = run(&mut a, 60, |f| vec![candidate(0.02 * f as f32, 0.0, 0)]);
     assert_eq!(frames[0].ids, vec![None], "tentative at first");
     assert_eq!(frames[1].ids, vec![None]);
@@ -61,7 +69,7 @@ fn one_object_is_born_after_the_birth_frames_and_keeps_its_id() {
 
 #[test]
 fn a_glimpse_of_one_frame_never_becomes_an_object() {
-    let mut a = Associator::new(AssociationSettings::default());
+    let mut a = Associator::new(model_units());
     let frames = run(&mut a, 30, |f| {
         let mut c = vec![candidate(0.0, 0.0, 0)];
         if f == 10 || f == 20 {
@@ -78,7 +86,7 @@ fn a_glimpse_of_one_frame_never_becomes_an_object() {
 fn two_objects_whose_paths_cross_keep_their_ids() {
     // Head on along x at 1.2 m/s, through the same point at frame 45: position alone cannot tell
     // them apart there, their shapes and their motion can.
-    let mut a = Associator::new(AssociationSettings::default());
+    let mut a = Associator::new(model_units());
     let frames = run(&mut a, 90, |f| {
         let x = -1.8 + 1.2 * f as f32 / FPS as f32;
         vec![candidate(x, 0.0, 0), candidate(-x, 0.05, 1)]
@@ -89,7 +97,7 @@ fn two_objects_whose_paths_cross_keep_their_ids() {
         assert_eq!(frame.ids, first, "frame {f}: an id switch");
     }
     // The same with two objects of one family (shapes nearly equal): the motion model carries them.
-    let mut a = Associator::new(AssociationSettings::default());
+    let mut a = Associator::new(model_units());
     let frames = run(&mut a, 90, |f| {
         let x = -1.8 + 1.2 * f as f32 / FPS as f32;
         vec![candidate(x, 0.0, 0), candidate(-x, 0.05, 2)]
@@ -103,7 +111,7 @@ fn two_objects_whose_paths_cross_keep_their_ids() {
 
 #[test]
 fn an_object_hidden_for_half_a_second_comes_back_on_its_track() {
-    let mut a = Associator::new(AssociationSettings::default());
+    let mut a = Associator::new(model_units());
     let frames = run(&mut a, 90, |f| {
         let x = -1.0 + 0.8 * f as f32 / FPS as f32;
         if (40..55).contains(&f) {
@@ -119,7 +127,7 @@ fn an_object_hidden_for_half_a_second_comes_back_on_its_track() {
 
 #[test]
 fn an_object_that_leaves_and_returns_gets_its_id_back_and_a_stranger_does_not() {
-    let mut a = Associator::new(AssociationSettings::default());
+    let mut a = Associator::new(model_units());
     // Object 0 (id 1) stays; object 1 (id 2) leaves at 2 s, returns at 5 s elsewhere; at 7 s a
     // third object of another shape arrives.
     let frames = run(&mut a, 300, |f| {
@@ -167,8 +175,8 @@ fn settings_are_checked_by_name() {
 /// and a track that returns within the memory window goes on from the filters it had.
 #[test]
 fn each_track_keeps_its_own_filters_and_gets_them_back_when_it_returns() {
-    use gdvae_node::track::{ObjectTracks, TrackSettings};
-    let settings = TrackSettings::default();
+    use gdvae_node::track::ObjectTracks;
+    let settings = TrackSettings::default().in_model_units(UNCALIBRATED_Z_I_SPREAD);
     let mut tracks = ObjectTracks::new(&settings);
     let log_variance = vec![-4.0f32; 8];
     let mut fused: std::collections::HashMap<u64, u64> = std::collections::HashMap::new();
@@ -226,7 +234,7 @@ fn two_tracks_coast_through_a_merge_and_keep_their_objects() {
     let run_with = |merge_ratio: f32| {
         let mut associator = Associator::new(AssociationSettings {
             merge_ratio,
-            ..AssociationSettings::default()
+            ..model_units()
         });
         // Both move along +x at 1 m/s, 0.9 m apart in y; from 1 s to 1.5 s one merged cluster at
         // their middle, with the points of both.
@@ -270,7 +278,7 @@ fn a_piece_of_an_object_starts_no_track() {
     let tracks_seen = |fragment_m: f32| {
         let mut associator = Associator::new(AssociationSettings {
             fragment_m,
-            ..AssociationSettings::default()
+            ..model_units()
         });
         let frames = run(&mut associator, 60, |f| {
             let mut c = vec![candidate(0.0, 0.0, 0)];
@@ -297,7 +305,7 @@ fn a_piece_of_an_object_starts_no_track() {
 /// subject's own track.
 #[test]
 fn a_coasting_track_does_not_take_another_tracks_object() {
-    let mut associator = Associator::new(AssociationSettings::default());
+    let mut associator = Associator::new(model_units());
     let frames = run(&mut associator, 90, |f| {
         let t = f as f32 / FPS as f32;
         let mut c = vec![candidate(0.5 * t, 0.0, 0)];
@@ -322,7 +330,7 @@ fn a_coasting_track_does_not_take_another_tracks_object() {
 fn an_object_whose_centre_rises_as_its_legs_are_hidden_keeps_its_track() {
     let mut associator = Associator::new(AssociationSettings {
         gate_m: 0.3,
-        ..AssociationSettings::default()
+        ..model_units()
     });
     let frames = run(&mut associator, 60, |f| {
         let hidden = (20..30).contains(&f);
@@ -339,7 +347,7 @@ fn an_object_whose_centre_rises_as_its_legs_are_hidden_keeps_its_track() {
 /// neither track is pulled to the cluster's centre.
 #[test]
 fn a_merged_cluster_that_loses_points_stays_merged_until_the_objects_part() {
-    let mut associator = Associator::new(AssociationSettings::default());
+    let mut associator = Associator::new(model_units());
     let frames = run(&mut associator, 90, |f| {
         let t = f as f64 / FPS;
         let x = t as f32;
@@ -371,7 +379,7 @@ fn an_object_coming_back_into_view_in_part_waits_for_its_shape_and_gets_its_id_b
     let run_with = |reid_wait_s: f64| {
         let mut associator = Associator::new(AssociationSettings {
             reid_wait_s,
-            ..AssociationSettings::default()
+            ..model_units()
         });
         let frames = run(&mut associator, 150, |f| {
             let t = f as f64 / FPS;
@@ -405,7 +413,7 @@ fn a_coasting_track_does_not_take_a_piece_of_an_object_another_track_holds() {
     let run_with = |fragment_m: f32| {
         let mut associator = Associator::new(AssociationSettings {
             fragment_m,
-            ..AssociationSettings::default()
+            ..model_units()
         });
         let frames = run(&mut associator, 60, |f| {
             let t = f as f64 / FPS;
@@ -440,5 +448,47 @@ fn a_coasting_track_does_not_take_a_piece_of_an_object_another_track_holds() {
     assert!(
         split.iter().any(|ids| ids.contains(&Some(2))),
         "without the rule it takes the legs: {split:?}"
+    );
+}
+
+/// The z_I distances are given in z_I spreads: a bundle whose z_I is twice as wide (its
+/// calibration's z_I_spread twice the assumed) gets twice the distances in model units, and a
+/// returning object whose z_I moved by the same share of the spread gets its id back alike; taken
+/// in the narrower bundle's units, the same return is a new object.
+#[test]
+fn z_i_distances_follow_the_bundle_s_z_i_spread() {
+    let returns = |width: f32, spread: f32| {
+        let mut associator = Associator::new(TrackSettings::default().in_model_units(spread).objects);
+        let moved = 2.0 + 0.8 / 8f32.sqrt(); // 0.8 of the assumed bundle's z_I units away
+        let frames = run(&mut associator, 240, |f| {
+            let t = f as f64 / FPS;
+            let mut c = vec![Candidate {
+                centre: [0.0, -1.0, 0.4],
+                z_i: vec![0.0; 8],
+                points: 0,
+            }];
+            if !(2.0..5.0).contains(&t) {
+                let code = if t < 2.0 { 2.0 } else { moved };
+                c.push(Candidate {
+                    centre: [1.0, 1.0, 0.4],
+                    z_i: vec![width * code; 8],
+                    points: 0,
+                });
+            }
+            c
+        });
+        frames.iter().flat_map(|f| f.events.clone()).collect::<Vec<_>>()
+    };
+    let back = |events: &[TrackEvent]| {
+        events
+            .iter()
+            .any(|e| matches!(e, TrackEvent::Reidentified { id: 2, .. }))
+    };
+    assert!(back(&returns(1.0, UNCALIBRATED_Z_I_SPREAD)));
+    assert!(back(&returns(2.0, 2.0 * UNCALIBRATED_Z_I_SPREAD)));
+    let narrow = returns(2.0, UNCALIBRATED_Z_I_SPREAD);
+    assert!(
+        !back(&narrow) && narrow.contains(&TrackEvent::Born { id: 3 }),
+        "{narrow:?}"
     );
 }

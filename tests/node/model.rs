@@ -109,7 +109,14 @@ fn altered_or_unsupported_bundles_are_refused_with_the_reason() {
         std::fs::write(dir.path().join("manifest.json"), calibrated.to_string()).unwrap();
         let error = Bundle::load(dir.path()).unwrap_err().to_string();
         assert!(error.contains("z_I_variance_scale"), "{error}");
+        calibrated["calibration"] = serde_json::json!({ "z_I_variance_scale": 1.0, "z_I_spread": bad });
+        std::fs::write(dir.path().join("manifest.json"), calibrated.to_string()).unwrap();
+        let error = Bundle::load(dir.path()).unwrap_err().to_string();
+        assert!(error.contains("z_I_spread"), "{error}");
     }
+    calibrated["calibration"] = serde_json::json!({ "z_I_variance_scale": 1.0, "z_I_spread": 1.5 });
+    std::fs::write(dir.path().join("manifest.json"), calibrated.to_string()).unwrap();
+    assert_eq!(Bundle::load(dir.path()).unwrap().manifest.calibration.z_i_unit(), 1.5);
     let width = calibrated["sizes"]["x_c"].as_u64().unwrap() as usize;
     let encoder = calibrated["files"]["encoder.onnx"]["sha256"].clone();
     for (projection, expected) in [

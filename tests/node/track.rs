@@ -5,6 +5,7 @@
 //! heading tracker follows a turn with bounded lag, keeps its sense through a burst of flipped
 //! measurements, and faces a walking subject the way it walks.
 
+use gdvae_node::bundle::UNCALIBRATED_Z_I_SPREAD;
 use gdvae_node::config::{ChangeDetector, Smoothing, TrackSettings};
 use gdvae_node::track::{unwrap, yaw_of, HeadingFilter, PoseFilter, ShapeFilter};
 use rand::{Rng, SeedableRng};
@@ -29,12 +30,18 @@ fn frames(truth: &[f32], sigma: f32, count: usize, rng: &mut ChaCha8Rng) -> Vec<
 /// distance averages about 1 (a chi-square per dimension). These tests take the variances as
 /// reported (scale 1) with a gate for such calibrated variances; the defaults are set for the
 /// shipped bundle on camera recordings (docs/tracking.md).
+/// The default settings in model units for a bundle of the assumed z_I spread (as the pipeline
+/// turns them for a bundle): the z_I codes below are written at that scale.
+fn model_units() -> TrackSettings {
+    TrackSettings::default().in_model_units(UNCALIBRATED_Z_I_SPREAD)
+}
+
 fn calibrated() -> TrackSettings {
     TrackSettings {
         shape_gate: 2.5,
         cusum_drift: 2.5,
         shape_variance_scale: 1.0,
-        ..TrackSettings::default()
+        ..model_units()
     }
 }
 
@@ -91,7 +98,7 @@ fn fused_shape_converges_and_its_variance_shrinks() {
         variances.windows(2).all(|w| w[1] < w[0]),
         "the variance shrinks with every frame"
     );
-    let floor = TrackSettings::default().min_shape_variance;
+    let floor = model_units().min_shape_variance;
     assert!(
         (floored.variance()[0] - floor).abs() < 1e-9,
         "never below min_shape_variance"
@@ -153,7 +160,7 @@ fn a_lone_outlier_frame_is_held_out_not_a_switch() {
 
 #[test]
 fn pose_smoothing_lags_a_moving_pose_by_a_bounded_amount_and_calms_a_still_one() {
-    let settings = TrackSettings::default();
+    let settings = model_units();
     let mut filter = PoseFilter::new(&settings);
     let dt = 1.0 / 30.0;
     let mut rng = ChaCha8Rng::seed_from_u64(4);
@@ -198,7 +205,7 @@ fn pose_smoothing_lags_a_moving_pose_by_a_bounded_amount_and_calms_a_still_one()
 fn quaternion_sign_is_continuous_and_yaw_unwraps_over_turns() {
     let mut filter = PoseFilter::new(&TrackSettings {
         smoothing: Smoothing::None,
-        ..TrackSettings::default()
+        ..model_units()
     });
     let dt = 1.0 / 30.0;
     let mut last_yaw = None;
@@ -252,7 +259,7 @@ fn drift_settings() -> TrackSettings {
         cusum_threshold: 4.0,
         min_shape_variance: 1e-3,
         shape_variance_scale: 1.0,
-        ..TrackSettings::default()
+        ..model_units()
     }
 }
 
@@ -410,7 +417,7 @@ fn wrap_deg(angle: f64) -> f64 {
 #[test]
 fn a_constant_rate_turn_in_place_is_followed_with_bounded_lag() {
     // Idle turning at 0.35 rad/s (the sim's rate), encoder yaw with 15-degree noise, no motion.
-    let settings = TrackSettings::default();
+    let settings = model_units();
     let mut filter = HeadingFilter::new(&settings);
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let noise = Normal::new(0.0, 15f64.to_radians()).unwrap();
@@ -463,7 +470,7 @@ fn departure_during_a_slide(settings: &TrackSettings, burst_spread: f64) -> f64 
 
 #[test]
 fn readings_whose_yaw_copies_disagree_move_the_track_less() {
-    let settings = TrackSettings::default();
+    let settings = model_units();
     let agreeing = departure_during_a_slide(&settings, 3f64.to_radians());
     let disagreeing = departure_during_a_slide(&settings, 60f64.to_radians());
     assert!(
@@ -477,7 +484,7 @@ fn readings_whose_yaw_copies_disagree_move_the_track_less() {
     // The setting's 0 ignores the copies' scatter.
     let ignoring = TrackSettings {
         heading_copy_spread_scale: 0.0,
-        ..TrackSettings::default()
+        ..model_units()
     };
     let (a, d) = (
         departure_during_a_slide(&ignoring, 3f64.to_radians()),
@@ -508,10 +515,10 @@ fn overshoot_after_a_turn(settings: &TrackSettings) -> f64 {
 
 #[test]
 fn the_turn_rate_fades_so_poor_readings_after_a_turn_do_not_carry_the_track_on() {
-    let fading = overshoot_after_a_turn(&TrackSettings::default());
+    let fading = overshoot_after_a_turn(&model_units());
     let kept = overshoot_after_a_turn(&TrackSettings {
         heading_rate_time_s: 0.0,
-        ..TrackSettings::default()
+        ..model_units()
     });
     assert!(kept > 20.0, "premise: a kept rate coasts {kept:.1} deg past the stop");
     assert!(
@@ -547,15 +554,15 @@ fn burst_of_back_to_front_frames(settings: &TrackSettings, burst: usize) {
 fn a_burst_of_back_to_front_measurements_does_not_turn_the_track_round() {
     // Default encoder vote (1, evidence kept up to 12): 10 frames (0.33 s) are outvoted by the
     // evidence gathered before.
-    burst_of_back_to_front_frames(&TrackSettings::default(), 10);
+    burst_of_back_to_front_frames(&model_units(), 10);
     // A weaker vote outlasts a longer burst: 20 frames (0.67 s).
     let patient = TrackSettings {
         heading_encoder_vote: 0.25,
-        ..TrackSettings::default()
+        ..model_units()
     };
     burst_of_back_to_front_frames(&patient, 20);
     // And the burst test can fail: the default vote turns round on 20 flipped frames.
-    let turned = std::panic::catch_unwind(|| burst_of_back_to_front_frames(&TrackSettings::default(), 20));
+    let turned = std::panic::catch_unwind(|| burst_of_back_to_front_frames(&model_units(), 20));
     assert!(
         turned.is_err(),
         "20 flipped frames at the default vote should turn the track round"
@@ -568,7 +575,7 @@ fn a_burst_of_readings_that_fit_neither_front_nor_back_bends_the_track_little() 
     // bundle does on bipeds now and then. Read modulo 180 degrees, such a reading is 65 degrees
     // behind the track and drags it towards the back (50-60 degrees off in this set-up); read as
     // neither the front nor the back, it is mostly taken for a wild one.
-    let settings = TrackSettings::default();
+    let settings = model_units();
     let mut filter = HeadingFilter::new(&settings);
     let mut rng = ChaCha8Rng::seed_from_u64(16);
     let noise = Normal::new(0.0, 10f64.to_radians()).unwrap();
@@ -595,7 +602,7 @@ fn a_jump_of_the_centre_of_a_subject_standing_still_is_not_a_walk() {
     // backwards at frame 90, while the subject stands facing +x and the encoder reads it right.
     // Over a 1-s window the jump looks like a walk backwards at about 0.5 m/s; taken as one, its
     // votes would turn the track round.
-    let settings = TrackSettings::default();
+    let settings = model_units();
     let mut filter = HeadingFilter::new(&settings);
     let mut rng = ChaCha8Rng::seed_from_u64(17);
     let noise = Normal::new(0.0, 10f64.to_radians()).unwrap();
@@ -646,7 +653,7 @@ fn worst_error_walking_read_backwards(settings: &TrackSettings) -> f64 {
 #[test]
 fn a_walking_subject_is_faced_the_way_it_walks_even_when_the_encoder_says_backwards() {
     // A walk (the centre goes somewhere) outvotes the encoder: the track comes round.
-    let worst = worst_error_walking_read_backwards(&TrackSettings::default());
+    let worst = worst_error_walking_read_backwards(&model_units());
     assert!(
         worst < 20.0,
         "after 2 s the track faces the walking direction (worst {worst:.1} deg)"
@@ -655,7 +662,7 @@ fn a_walking_subject_is_faced_the_way_it_walks_even_when_the_encoder_says_backwa
     // cancels it, and the track never comes round.
     let walks_not_told_apart = TrackSettings {
         heading_walk_vote: 1.0,
-        ..TrackSettings::default()
+        ..model_units()
     };
     let worst = worst_error_walking_read_backwards(&walks_not_told_apart);
     assert!(worst > 90.0, "worst {worst:.1} deg without the walk's vote");
@@ -665,7 +672,7 @@ fn a_walking_subject_is_faced_the_way_it_walks_even_when_the_encoder_says_backwa
 fn without_motion_the_sense_follows_the_encoder_majority() {
     let settings = TrackSettings {
         heading_from_motion: false,
-        ..TrackSettings::default()
+        ..model_units()
     };
     let mut filter = HeadingFilter::new(&settings);
     let mut rng = ChaCha8Rng::seed_from_u64(14);
@@ -690,7 +697,7 @@ fn an_encoder_that_scatters_over_all_angles_gives_way_to_the_motion() {
     // A body whose heading the encoder cannot read (its yaw uniform over the circle, as the
     // shipped bundle's is for bipeds on camera views), walking a gentle curve: the encoder's
     // frame-to-frame jitter widens its noise, so the motion direction sets the track.
-    let settings = TrackSettings::default();
+    let settings = model_units();
     let mut filter = HeadingFilter::new(&settings);
     let mut rng = ChaCha8Rng::seed_from_u64(15);
     let (mut x, mut y) = (0.0f64, 0.0f64);
@@ -715,7 +722,7 @@ fn an_encoder_that_scatters_over_all_angles_gives_way_to_the_motion() {
 fn seconds_to_turn_round(rate_hz: f64) -> f64 {
     let settings = TrackSettings {
         heading_from_motion: false,
-        ..TrackSettings::default()
+        ..model_units()
     };
     let mut filter = HeadingFilter::new(&settings);
     let dt = 1.0 / rate_hz;
@@ -778,13 +785,13 @@ fn sweeping_centre(settings: &TrackSettings) -> (usize, bool) {
 fn with_a_least_travel_a_centre_that_sweeps_back_and_forth_is_not_a_walk() {
     let travel = TrackSettings {
         motion_min_travel_m: 0.5,
-        ..TrackSettings::default()
+        ..model_units()
     };
     let (with_motion, turned) = sweeping_centre(&travel);
     assert_eq!(with_motion, 0, "the sweep was taken for a walk on {with_motion} frames");
     assert!(!turned, "the track turned round");
     // The premise: without the travel test the sweep passes the window's tests.
-    let (with_motion, _) = sweeping_centre(&TrackSettings::default());
+    let (with_motion, _) = sweeping_centre(&model_units());
     assert!(
         with_motion > 30,
         "only {with_motion} frames of motion without the travel test"
@@ -794,7 +801,7 @@ fn with_a_least_travel_a_centre_that_sweeps_back_and_forth_is_not_a_walk() {
 #[test]
 fn a_centre_that_sweeps_back_and_forth_does_not_outvote_the_encoder() {
     // The default votes: an encoder frame as much as a frame of motion that did not go anywhere.
-    let (with_motion, turned) = sweeping_centre(&TrackSettings::default());
+    let (with_motion, turned) = sweeping_centre(&model_units());
     assert!(
         with_motion > 30,
         "premise: the sweep passes the window's tests ({with_motion} frames)"
@@ -804,7 +811,7 @@ fn a_centre_that_sweeps_back_and_forth_does_not_outvote_the_encoder() {
     let motion_first = TrackSettings {
         heading_encoder_vote: 0.5,
         heading_flip_evidence: 6.0,
-        ..TrackSettings::default()
+        ..model_units()
     };
     assert!(sweeping_centre(&motion_first).1, "premise: the old votes turn round");
 }
@@ -815,7 +822,7 @@ fn with_a_least_travel_a_walk_still_sets_the_heading() {
     // motion in once the centre has gone half a metre, and the track comes round.
     let settings = TrackSettings {
         motion_min_travel_m: 0.5,
-        ..TrackSettings::default()
+        ..model_units()
     };
     let mut filter = HeadingFilter::new(&settings);
     let mut rng = ChaCha8Rng::seed_from_u64(19);
