@@ -63,6 +63,9 @@ pub struct TrackSettings {
     /// spread per direction), in place of `cusum_drift` and `cusum_threshold`.
     pub identity_cusum_drift: f32,
     pub identity_cusum_threshold: f32,
+    /// Floor on each fused variance of the identity projection's code (its units: unit
+    /// within-subject spread per direction), as `min_shape_variance` is z_I's.
+    pub min_identity_variance: f32,
     /// The bundle's identity projection (rows of weights on x_c), set from the bundle at start;
     /// not a config key.
     #[serde(skip)]
@@ -131,6 +134,7 @@ impl Default for TrackSettings {
             use_identity_projection: true,
             identity_cusum_drift: 9.0,
             identity_cusum_threshold: 20.0,
+            min_identity_variance: 4e-4,
             identity_projection: None,
             smoothing: Smoothing::OneEuro,
             min_cutoff_hz: 1.0,
@@ -194,6 +198,7 @@ impl TrackSettings {
             ("cusum_threshold", self.cusum_threshold),
             ("identity_cusum_drift", self.identity_cusum_drift),
             ("identity_cusum_threshold", self.identity_cusum_threshold),
+            ("min_identity_variance", self.min_identity_variance),
             ("min_cutoff_hz", self.min_cutoff_hz),
             ("nominal_rate_hz", self.nominal_rate_hz),
             ("heading_std_deg", self.heading_std_deg),

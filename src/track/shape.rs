@@ -13,8 +13,9 @@
 //!   identity starts from them.
 //! - `consecutive`: `switch_frames` frames beyond the gate in a row.
 //!
-//! The fused variance has a floor (`min_shape_variance`), which makes the estimate a slowly
-//! forgetting average: it follows the slow drift of z_I as the subject turns and changes pose.
+//! The fused variance has a floor (`min_shape_variance`; `min_identity_variance` for the identity
+//! projection's code below), which makes the estimate a slowly forgetting average: it follows the
+//! slow drift of z_I as the subject turns and changes pose.
 //!
 //! With an **identity projection** (the bundle's `calibration.identity_projection`, fitted on the
 //! node's own clouds of many sim subjects; `[track] use_identity_projection`) the distances, the
@@ -116,6 +117,8 @@ pub struct ShapeFilter {
     gate: f32,
     switch_frames: usize,
     max_precision: f32,
+    /// The same for the identity projection's code.
+    code_max_precision: f32,
     variance_scale: f32,
     detector: ChangeDetector,
     drift: f32,
@@ -140,6 +143,7 @@ impl ShapeFilter {
             gate: settings.shape_gate,
             switch_frames: settings.switch_frames,
             max_precision: 1.0 / settings.min_shape_variance,
+            code_max_precision: 1.0 / settings.min_identity_variance,
             variance_scale: settings.shape_variance_scale,
             detector: settings.change_detector,
             drift,
@@ -304,7 +308,7 @@ impl ShapeFilter {
     fn fuse(&mut self, frame: &Held) {
         self.shape.fuse(&frame.shape, self.max_precision);
         if let (Some(fused), Some(code)) = (&mut self.code, &frame.code) {
-            fused.fuse(code, self.max_precision);
+            fused.fuse(code, self.code_max_precision);
         }
         self.frames += 1;
     }

@@ -899,3 +899,29 @@ fn under_an_identity_projection_a_change_only_x_c_shows_is_found_and_z_i_is_stil
         "fused z_I off by {error} (its noise: 0.05 a frame, averaged over a few)"
     );
 }
+
+/// The identity projection's code has its own units (unit within-subject spread per direction):
+/// a bundle whose z_I is ten times as wide leaves its statistic, frame by frame, as it was, since
+/// only z_I's variance floor follows the bundle's z_I spread.
+#[test]
+fn the_identity_projection_s_detector_does_not_follow_the_z_i_spread() {
+    let mut row = vec![0.0f32; 8];
+    row[0] = 1.0;
+    let statistics = |spread: f32| {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let settings = TrackSettings {
+            identity_projection: Some(std::sync::Arc::new(vec![row.clone()])),
+            ..TrackSettings::default().in_model_units(spread)
+        };
+        let mut filter = ShapeFilter::new(&settings);
+        let mut frames = coded_frames(&object(0.0), 0.0, 400, &mut rng);
+        frames.extend(coded_frames(&object(0.0), 0.3, 400, &mut rng)); // a slow drift of identity
+        frames
+            .iter()
+            .map(|(mean, lv, x_c)| filter.update_coded(mean, lv, x_c).statistic)
+            .collect::<Vec<_>>()
+    };
+    let narrow = statistics(UNCALIBRATED_Z_I_SPREAD);
+    assert!(narrow.iter().any(|&s| s > 0.0));
+    assert_eq!(narrow, statistics(10.0 * UNCALIBRATED_Z_I_SPREAD));
+}
