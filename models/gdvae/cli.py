@@ -109,6 +109,12 @@ def train_command(args) -> int:
                                  f"runs): add --reteach {stage} to teach it again on {path}")
             taught[stage] = load_dataset(path)
             use_model_units(taught[stage], chosen.model_units or dataset.scale)
+    node_identity = None
+    if args.node_states:  # read and checked before any training, as the datasets are
+        from .node_identity import NodeIdentityData
+
+        node_identity = NodeIdentityData.from_states(args.node_states, source_ae.get("latent", chosen.ae.latent))
+        log.info("node states: %(frames)d frames of %(subjects)s subjects (by family)", node_identity.summary())
     if args.rebuild_bank and not args.init_from:
         raise SystemExit("--rebuild-bank goes with --init-from (a fresh run builds its own bank)")
     if args.continue_ae and not args.init_from:
@@ -121,7 +127,7 @@ def train_command(args) -> int:
     train(dataset, spectra, args.out, chosen, stop_after=args.stop_after, init_from=args.init_from,
           rebuild_bank=args.rebuild_bank, continue_ae=args.continue_ae, device=device, limits=limits,
           loader_workers=args.loader_workers, pose_dataset=taught.get("pose"),
-          body_dataset=taught.get("body"), reteach=tuple(args.reteach or ()))
+          body_dataset=taught.get("body"), reteach=tuple(args.reteach or ()), node_identity=node_identity)
     log.info("training finished: %s", args.out)
     return 0
 
@@ -256,8 +262,11 @@ def export_command(args) -> int:
                 "depth_camera_views": chosen.depth_camera_views,
                 "bank_partial_views": chosen.bank_view_share(),
                 # what the VAE taught its codes from the sim's truth (0: nothing), for the model card
-                "omega_pose": chosen.vae.omega_pose, "omega_body": chosen.vae.omega_body,
-                "body_direct": chosen.vae.body_direct}
+                # (a code kept from the run this one started from was taught there)
+                "omega_pose": chosen.vae.omega_pose or summary.get("z_E_kept_from", {}).get("omega_pose", 0.0),
+                "omega_body": chosen.vae.omega_body or summary.get("z_I_kept_from", {}).get("omega_body", 0.0),
+                "body_direct": chosen.vae.body_direct or summary.get("z_I_kept_from", {}).get("body_direct", False),
+                "omega_node_identity": chosen.vae.omega_node_identity}
     training.update(trained_iterations(Path(args.run), chosen))
     calibration = None
     if args.calibrate and args.calibration_from:
@@ -278,9 +287,9 @@ def export_command(args) -> int:
             raise ValueError(f"{args.calibrate}: no held-out meshes to calibrate on (check splits.json)")
         calibration = z_i_variance_calibration(ae, vae, dataset, held_out, full_rotations=chosen.ae.full_rotations,
                                               depth_camera=chosen.depth_camera_views)
-        log.info("z_I variance calibration: x %.4g (per-dimension ratios p10 %.3g, p90 %.3g; %d subjects)",
-                 calibration["z_I_variance_scale"], calibration["ratio_p10"], calibration["ratio_p90"],
-                 calibration["groups"])
+        log.info("z_I variance calibration: x %.4g (per-dimension ratios p10 %.3g, p90 %.3g; %d subjects); "
+                 "a subject's z_I spread %.4g", calibration["z_I_variance_scale"], calibration["ratio_p10"],
+                 calibration["ratio_p90"], calibration["groups"], calibration["z_I_spread"])
     write_bundle(ae, vae, args.out, scale=summary["scale"], recipe_name=chosen.name, training=training,
                  metrics=metrics, calibration=calibration)
     print(f"bundle written to {args.out}")
@@ -397,6 +406,9 @@ def main(argv=None) -> int:
                           help="with --init-from: teach its AE's pose (or body) encoder again, from the start, "
                                "on this run's settings (recipe.pose_components, --pose-data), then a new code "
                                "bank (repeatable)")
+    training.add_argument("--node-states", nargs="+", metavar="STATES",
+                          help="`gdvae-node evaluate SIM-RECORDINGS --states` files (x_c of this run's AE): "
+                               "vae.omega_node_identity teaches z_I to tell their subjects apart")
     training.add_argument("--limit", type=int, help="use only the first N meshes")
     training.add_argument("--device", default="cpu", help="torch device to train on: cpu (default), cuda, cuda:1")
     training.add_argument("--ae-minutes", type=float, metavar="M",

@@ -272,6 +272,12 @@ def model_card(manifest: dict) -> str:
            + ("directly: its first units are each training mesh's body-shape parameters, normalised per family."
               if t.get("body_direct") else "through linear heads.")]
           if t.get("omega_body") else []),
+        *([f"mu_I was also taught to tell subjects apart on the node's own clouds (vae.omega_node_identity "
+           f"{t['omega_node_identity']:g}): an identity contrast on the x_c the node computed in "
+           f"{t['node_identity'].get('frames', '?')} frames of sim recordings of "
+           f"{sum(t['node_identity'].get('subjects', {}).values())} subjects "
+           f"({', '.join(f'{n} {f}s' for f, n in t['node_identity'].get('subjects', {}).items())})."]
+          if t.get("omega_node_identity") and t.get("node_identity") else []),
         f"Partial views: {partial:.0%} of the AE's input copies were the side a camera sees"
         f"{', as the depth camera renders it (self-occlusion, stereo noise)' if t.get('depth_camera_views') else ''} "
         "(the AE still reconstructs the whole surface)." if partial else "Partial views: none (whole surfaces only).",
@@ -301,6 +307,10 @@ def model_card(manifest: dict) -> str:
                      f"and views by this times the variance the encoder reports (median over dimensions; p10 "
                      f"{calibration['ratio_p10']:.3g}, p90 {calibration['ratio_p90']:.3g}); measured on "
                      f"{calibration['measured_on']}. The node's tracker applies it.")
+        if "z_I_spread" in calibration:
+            lines.append(f"- z_I spread {calibration['z_I_spread']:.4g}: how far one subject's z_I lies from its mean "
+                         "over those poses and views (root mean square, median over subjects). The node measures "
+                         "z_I distances between tracks in this unit (`[track.objects]` shape_scale, reid_distance).")
     else:
         lines.append("- none: the node takes the encoder's z_I variances as reported (`export --calibrate`).")
     projection = (calibration or {}).get("identity_projection")

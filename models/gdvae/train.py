@@ -32,7 +32,9 @@ from .budget import budget_spent
 from .data import DepthCamera, MeshDataset
 from .evaluate import beta_ranges
 from .geometry import chamfer, matrix_to_quaternion, quaternion_to_matrix, random_rotation_matrices, rotate
-from .paired import PairedBatches, Pairing
+from .loss_parts import LossParts
+from .node_identity import NodeIdentityBatches, NodeIdentityData
+from .paired import PairedBatches, Pairing, identity_contrast
 from .pose import BodyTargets, PoseTargets, train_body, train_pose
 from .surface import PointSampler
 from .vae import LatentVAE, VAEConfig, vae_loss
@@ -288,7 +290,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
           stop_after: str | None = None, init_from: str | Path | None = None, rebuild_bank: bool = False,
           continue_ae: int = 0, device: str = "cpu", limits: StageLimits | None = None,
           loader_workers: int = 0, pose_dataset: MeshDataset | None = None,
-          body_dataset: MeshDataset | None = None, reteach: tuple[str, ...] = ()) -> dict:
+          body_dataset: MeshDataset | None = None, reteach: tuple[str, ...] = (),
+          node_identity: NodeIdentityData | None = None) -> dict:
     """Runs (or resumes) the stages: AE, pose (with a pose encoder), body (with a body encoder),
     code bank, VAE. Returns the trained modules.
 
@@ -302,7 +305,8 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     training split; default `dataset`'s), e.g. many distinct poses where `dataset` is a paired grid
     of few; `body_dataset` likewise the body stage's (many distinct subjects). `reteach` ("pose",
     "body"): with `init_from`, teach the source's E_p or E_b again (new targets or data; each starts
-    as a new one does), then a new code bank.
+    as a new one does), then a new code bank. `node_identity`: x_c of the node's frames with their
+    subjects, which `vae.omega_node_identity` teaches z_I to tell apart (node_identity.py).
     """
     limits = limits or StageLimits()
     limits.validate()
@@ -313,6 +317,10 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     if loader_workers > 0 and device.type != "cpu":
         raise ValueError(f"loader workers ({loader_workers}) make batches on the CPU; on {device} the batches "
                          "are made on the device by the training process: leave --loader-workers out")
+    if (node_identity is None) != (chosen.vae.omega_node_identity == 0):
+        raise ValueError("the node's states (--node-states) and vae.omega_node_identity > 0 go together: "
+                         + ("give the states the term is taught on" if node_identity is None
+                            else "set the weight of the term they are for"))
     if chosen.partial_views > 0 and not chosen.ae.supervised:
         raise ValueError("partial views need the supervised AE (its target is the whole canonical cloud)")
     run_dir = Path(run_dir)
@@ -341,6 +349,9 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     chosen.vae = replace(chosen.vae, pose_input=chosen.ae.latent if chosen.ae.pose_encoder else 0,
                          body_input=chosen.ae.latent if chosen.ae.body_encoder else 0)
     check_reteach(reteach, chosen, init_from)
+    if node_identity is not None and node_identity.x_c.shape[1] != chosen.ae.latent:
+        raise ValueError(f"the node's states hold x_c of {node_identity.x_c.shape[1]} numbers, this run's AE makes "
+                         f"{chosen.ae.latent}: write them with a bundle exported from this run's autoencoder")
     (run_dir / "recipe.json").write_text(json.dumps(asdict(chosen), indent=2, default=str))
     summary = dataset_summary(dataset)
     if chosen.ae.pose_encoder:  # what E_p was taught on (the bundle's manifest and model card say it)
@@ -355,6 +366,15 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
                                  "iterations": chosen.body_iterations}
         if init_from is not None and source_has_body and "body" not in reteach:
             summary["body_stage"] = source_stage(init_from, "body_stage")
+    if init_from is not None:  # a code kept from the source was taught there (the model card says how)
+        source_vae = source_recipe.get("vae", {})
+        if chosen.vae.keep_extrinsic:
+            summary["z_E_kept_from"] = {"run": str(init_from), "omega_pose": source_vae.get("omega_pose", 0.0)}
+        if chosen.vae.keep_intrinsic:
+            summary["z_I_kept_from"] = {"run": str(init_from), "omega_body": source_vae.get("omega_body", 0.0),
+                                        "body_direct": source_vae.get("body_direct", False)}
+    if node_identity is not None:
+        summary["node_identity"] = node_identity.summary()
     (run_dir / "dataset.json").write_text(json.dumps(summary, indent=2))
     torch.manual_seed(chosen.seed)
     checkpoint_path = run_dir / "checkpoint.pt"
@@ -496,7 +516,7 @@ def train(dataset: MeshDataset, spectra: np.ndarray, run_dir: str | Path, chosen
     vae.to(device)
     if state["stage"] == "vae":
         train_vae(vae, bank, chosen, state, lambda extra: save({**extra, "bank": bank}), run_dir, len(train_indices),
-                  device, limits.vae_seconds, stages, taught)
+                  device, limits.vae_seconds, stages, taught, node_identity)
         save({"stage": "done", "iteration": 0, "bank": bank, "vae": vae.state_dict()})
     return {"ae": ae.eval().cpu(), "vae": vae.eval().cpu()}
 
@@ -810,9 +830,11 @@ def bank_batch(size: int, batch: int, copies: int, paired: bool, generator: torc
 
 
 def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, device=None, budget_seconds=None,
-              stages=None, taught: dict | None = None) -> None:
+              stages=None, taught: dict | None = None, node_identity: NodeIdentityData | None = None) -> None:
     """The VAE stage on the code bank. `taught` ({"body": pose.BodyTargets, "pose": PoseTargets(whitened=False)} of
-    the bank's meshes, in its order): what `vae.omega_body` teaches mu_I and `omega_pose` mu_E."""
+    the bank's meshes, in its order): what `vae.omega_body` teaches mu_I and `omega_pose` mu_E.
+    `node_identity`: the node's frames, on which `vae.omega_node_identity` adds an identity contrast
+    to every step (a batch of the VAE's batch size beside the bank's)."""
     optimizer = torch.optim.Adam(vae.trained_parameters(), lr=chosen.vae_learning_rate, weight_decay=chosen.vae_weight_decay,
                                  fused=fused_adam(device))
     schedule = Plateau(optimizer, chosen.vae_min_learning_rate)
@@ -845,6 +867,11 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
             raise ValueError(f"the {name} targets hold {len(targets.rows)} meshes, the code bank {size // copies}")
         taught_on_device[name] = {"rows": targets.rows.to(device), "mask": targets.mask.to(device),
                                   "family": torch.from_numpy(targets.family).to(device)}
+    node_batches = None
+    if vae.config.omega_node_identity > 0:
+        if node_identity is None:
+            raise ValueError("vae.omega_node_identity is on but no node states were given (--node-states)")
+        node_batches = NodeIdentityBatches(node_identity.to(device), chosen.vae_batch, chosen.seed + 2 + state["iteration"])
     vae.train()
     iteration, budget_ended = start, False
     for iteration in range(start, total):
@@ -864,12 +891,19 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
                           dataset_size=size, beta_scale=beta_scale, paired=paired,
                           x_p=on_device["x_p"][batch] if "x_p" in on_device else None,
                           x_b=on_device["x_b"][batch] if "x_b" in on_device else None, taught=rows)
+        total_loss, parts = losses.total, losses.parts
+        if node_batches is not None:
+            node_x_c, node_subject, node_family = next(node_batches)
+            node_term = identity_contrast(vae.intrinsic(node_x_c)[0], node_subject, node_family,
+                                          vae.config.contrast_temperature)
+            total_loss = total_loss + vae.config.omega_node_identity * node_term
+            parts = LossParts({**parts.terms, "total": total_loss, "node_identity": node_term})
         optimizer.zero_grad(set_to_none=True)
-        losses.total.backward()
+        total_loss.backward()
         torch.nn.utils.clip_grad_norm_(vae.trained_parameters(), 100.0)
         optimizer.step()
-        schedule.step(losses.parts.tensor("total"))
-        progress.update(iteration + 1, lambda: {**losses.parts, "lr": optimizer.param_groups[0]["lr"]},
+        schedule.step(parts.tensor("total"))
+        progress.update(iteration + 1, lambda: {**parts, "lr": optimizer.param_groups[0]["lr"]},
                         force=iteration + 1 == total)
         if time.monotonic() - last_save > chosen.checkpoint_seconds and iteration + 1 < total:
             save({"stage": "vae", "iteration": iteration + 1, "vae": vae.state_dict(),

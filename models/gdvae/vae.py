@@ -109,6 +109,11 @@ class VAEConfig:
     # No head: a head would leave mu_E's own geometry free, and retrieval by mu_E reads that
     # geometry (models/EXPERIMENTS.md, "mu_E taught the pose"). 0: off.
     omega_pose: float = 0.0
+    # Not in the paper: mu_I taught to tell subjects apart on the node's own clouds. The same
+    # InfoNCE as omega_contrast, on batches of x_c the node computed on sim recordings (several
+    # frames of each of many subjects; node_identity.py, `train --node-states`), added with this
+    # weight to every step's objective on the code bank. 0: off.
+    omega_node_identity: float = 0.0
     # Not in the paper: z_I's encoder, the spectral flow and the rotation branch keep the weights
     # the VAE starts with (another run's or an imported bundle's VAE, `train --init-from`); only
     # z_E's encoder and the shape decoder train. A live pose code is then added to a model whose
@@ -143,14 +148,16 @@ class VAEConfig:
     def validate(self) -> None:
         if self.regime not in ("gdvae++", "fo", "paired"):
             raise ValueError(f"regime must be 'gdvae++', 'fo' or 'paired', got {self.regime!r}")
-        for name in ("omega_swap", "omega_contrast", "omega_pose_contrast", "omega_body", "omega_pose"):
+        for name in ("omega_swap", "omega_contrast", "omega_pose_contrast", "omega_body", "omega_pose",
+                     "omega_node_identity"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0 (0: off), got {getattr(self, name)}")
         if not self.contrast_temperature > 0:
             raise ValueError(f"contrast_temperature must be > 0, got {self.contrast_temperature}")
         if self.body_direct and not self.omega_body > 0:
             raise ValueError("body_direct says how omega_body teaches mu_I: it goes with omega_body > 0")
-        for weight, kept, code in (("omega_pose", "keep_extrinsic", "mu_E"), ("omega_body", "keep_intrinsic", "mu_I")):
+        for weight, kept, code in (("omega_pose", "keep_extrinsic", "mu_E"), ("omega_body", "keep_intrinsic", "mu_I"),
+                                   ("omega_node_identity", "keep_intrinsic", "mu_I")):
             if getattr(self, weight) > 0 and getattr(self, kept):
                 raise ValueError(f"{weight} teaches {code}, whose encoder {kept} holds fixed: use one or the other")
         if self.paired and self.regime == "gdvae++":
