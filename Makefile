@@ -71,7 +71,7 @@ bench-tracking-stand: onnxruntime node sim
 FIT_STATES := $(or $(BENCH_DIR),/work/data/bench-tracking)
 fit-identity: onnxruntime node sim venv
 	for n in $$(seq 1 16); do bench/tracking.sh fit-$$n -- --states $(FIT_STATES)/fit-$$n-states.jsonl; done
-	cd models && ../$(PYTHON) -m gdvae fit-identity bundles/h200-fo-theta $(FIT_STATES)/fit-*-states.jsonl
+	cd models && ../$(PYTHON) -m gdvae fit-identity bundles/h200-fo-nodeid $(FIT_STATES)/fit-*-states.jsonl
 
 # The multi-object benchmark (docs/tracking.md "Several objects"): its recordings, the candidate
 # detection and the tracking (evaluate with config/objects.toml) on `tune`, `holdout`, `final`, the

@@ -65,7 +65,7 @@ pub struct ModelSettings {
 impl Default for ModelSettings {
     fn default() -> Self {
         Self {
-            bundle: PathBuf::from("models/bundles/h200-fo-theta"),
+            bundle: PathBuf::from("models/bundles/h200-fo-nodeid"),
             onnxruntime: None,
             workers: 1,
             threads: 2,

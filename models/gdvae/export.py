@@ -328,6 +328,10 @@ def model_card(manifest: dict) -> str:
         "- Trained on synthetic surfaces (the sim's quadruped and biped families) only.",
         "- Single-view depth clouds are partial: codes from them are noisier than from whole surfaces"
         + (" (the single-view figures above say by how much)." if partial else ", and this bundle never saw one."),
+        *(["- z_I was taught to tell subjects apart, not to stay near the unit prior: it is several times "
+            "wider than the paper's, and the spectral flow's log-likelihood of it (log_p_lambda) and the shape "
+            "decoded from the spectrum alone (shape_from_spectrum_d_C) are worse than a prior-bound z_I's."]
+          if t.get("omega_node_identity") else []),
         "- Not for safety-critical decisions.",
         "",
     ]

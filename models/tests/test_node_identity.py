@@ -72,7 +72,7 @@ def test_a_z_i_taught_on_the_node_s_states_tells_their_subjects_apart_better_and
     assert main(["export", str(run), "--out", str(bundle)]) == 0
     card = (bundle / "MODEL_CARD.md").read_text()
     assert "taught to tell subjects apart on the node's own clouds (vae.omega_node_identity 100)" in card
-    assert f"{len(data.x_c)} frames" in card
+    assert f"{len(data.x_c)} frames" in card and "not to stay near the unit prior" in card
 
 
 def test_node_states_that_cannot_teach_the_contrast_are_refused_with_the_reason(tmp_path):

@@ -227,7 +227,7 @@ fn inspect_model_shows_the_bundles_calibration() {
         "{stdout}"
     );
     // The default bundle detects identity changes on its identity projection.
-    let default = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/bundles/h200-fo-theta");
+    let default = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/bundles/h200-fo-nodeid");
     let output = std::process::Command::new(env!("CARGO_BIN_EXE_gdvae-node"))
         .args(["inspect-model"])
         .arg(&default)
