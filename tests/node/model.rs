@@ -251,4 +251,11 @@ fn inspect_model_shows_the_bundles_calibration() {
         projection.matrix.len()
     );
     assert!(subjects > 0 && stdout.contains(&expected), "{stdout}");
+    // Its z_I spread is measured, and the tracker's z_I distances are in it.
+    let spread = Bundle::load(&default).unwrap().manifest.calibration.z_i_spread;
+    let spread = spread.expect("the default bundle's calibration has its z_I spread");
+    assert!(
+        stdout.contains(&format!("calibration: z_I spread {spread}")),
+        "{stdout}"
+    );
 }
