@@ -38,10 +38,12 @@ under a bundle with an identity projection), which the replica checks.
 
 `--front` also prints each variant's found/false trade-off over its whole grid on the report files
 (a measurement, not a choice). The node's own settings (`shape_gate`, `switch_frames`,
-`min_shape_variance`) are config/default.toml's; a change is found when reported within 10 frames
+`min_shape_variance`, `min_identity_variance`) are config/default.toml's, z_I's floor in the
+`--bundle`'s z_I spread (default: the default bundle); a change is found when reported within 10 frames
 of the true one (`gdvae-node evaluate`'s rule).
 """
 import argparse
+import functools
 import itertools
 import json
 import math
@@ -53,14 +55,26 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "models"))
 from gdvae.identity import fit_projection  # noqa: E402  (the kit's fit, which the bundle gets)
 
-GATE, SWITCH, MIN_VARIANCE, MAX_HELD, MATURE, TOLERANCE = 2.0, 5, 4e-4, 300, 30, 10
+GATE, SWITCH, MAX_HELD, MATURE, TOLERANCE = 2.0, 5, 300, 30, 10
+# The fused variance's floors (config/default.toml): z_I's in squared z_I spreads (the bundle's
+# calibration.z_I_spread; 0.3413 for a bundle without one), a projected code's in its own units.
+MIN_SHAPE_VARIANCE, MIN_IDENTITY_VARIANCE, UNCALIBRATED_Z_I_SPREAD = 3.434e-3, 4e-4, 0.3413
+DEFAULT_BUNDLE = pathlib.Path(__file__).resolve().parents[1] / "models" / "bundles" / "h200-fo-nodeid"
+
+
+def z_i_spread(bundle) -> float:
+    """The bundle's calibration.z_I_spread, or the one the node assumes for a bundle without it."""
+    calibration = json.loads((pathlib.Path(bundle) / "manifest.json").read_text()).get("calibration") or {}
+    return calibration.get("z_I_spread", UNCALIBRATED_Z_I_SPREAD)
 
 
 class ShapeFilter:
-    """src/track/shape.rs with the CUSUM detector, on variances already scaled."""
+    """src/track/shape.rs with the CUSUM detector, on variances already scaled; `floor`: the fused
+    variance's floor (a projected code's by default; z_I's for z_I, `MIN_SHAPE_VARIANCE` times the
+    squared z_I spread)."""
 
-    def __init__(self, threshold, drift):
-        self.threshold, self.drift = threshold, drift
+    def __init__(self, threshold, drift, floor=MIN_IDENTITY_VARIANCE):
+        self.threshold, self.drift, self.floor = threshold, drift, floor
         self.frames, self.statistic, self.held = 0, 0.0, []
 
     def restart(self, frames):
@@ -74,7 +88,7 @@ class ShapeFilter:
         precision = 1.0 / np.maximum(variance, 1e-12)
         total = self.precision + precision
         self.mean = (self.mean * self.precision + mean * precision) / total
-        self.precision = np.minimum(total, 1.0 / MIN_VARIANCE)
+        self.precision = np.minimum(total, 1.0 / self.floor)
         self.frames += 1
 
     def update(self, mean, variance):
@@ -198,17 +212,17 @@ def load(path):
     return out
 
 
-def check_replica(streams, threshold, drift):
+def check_replica(streams, threshold, drift, make=ShapeFilter):
     """The replica at the node's settings must give every frame the distance the node published."""
     for name, frames, _ in streams:
-        detector = ShapeFilter(threshold, drift)
+        detector = make(threshold, drift)
         for f in frames:
             distance, _ = detector.update(f["mean"], f["variance"])
             if abs(distance - f["node_distance"]) > 1e-3 * max(1.0, distance):
                 sys.exit(
                     f"{name} frame {f['frame']}: the replica's distance {distance:.5f} is not the node's "
                     f"{f['node_distance']:.5f}: src/track/shape.rs changed, or the states were made with "
-                    f"other [track] settings than --node-threshold/--node-drift"
+                    f"other [track] settings than --node-threshold/--node-drift, or with another bundle than --bundle"
                 )
 
 
@@ -316,6 +330,9 @@ def main():
     parser.add_argument("--node-threshold", type=float, default=10.0, help="the [track] cusum_threshold the states were made with")
     parser.add_argument("--node-drift", type=float, default=3.0, help="the [track] cusum_drift the states were made with")
     parser.add_argument("--front", action="store_true", help="also print each variant's trade-off on --report")
+    parser.add_argument("--bundle", default=str(DEFAULT_BUNDLE),
+                        help="the bundle the states were made with: its z_I spread sets z_I's variance floor "
+                             "(default: the default bundle)")
     args = parser.parse_args()
 
     unknown = [name for name in args.hetero_without.split(",") if name and name not in FEATURES]
@@ -323,22 +340,23 @@ def main():
         sys.exit(f"--hetero-without {unknown}: the features are {FEATURES}")
     choice = {p: load(p) for p in args.choice.split(",")}
     report = {p: load(p) for p in args.report.split(",")}
+    z_i_filter = functools.partial(ShapeFilter, floor=MIN_SHAPE_VARIANCE * z_i_spread(args.bundle) ** 2)
     for streams in [*choice.values(), *report.values()]:
-        check_replica(streams, args.node_threshold, args.node_drift)
+        check_replica(streams, args.node_threshold, args.node_drift, z_i_filter)
     print(f"replica checked against the node's distances on {len(choice) + len(report)} files")
 
     variants = {}
     plain_grid = list(itertools.product([10, 6, 4, 3], [3.5, 3.0, 2.5, 2.25, 2.0, 1.75]))
     names = args.variants.split(",")
     if "shipped" in names:
-        variants["shipped"] = (lambda f: (f["mean"], f["variance"]), plain_grid, ShapeFilter)
+        variants["shipped"] = (lambda f: (f["mean"], f["variance"]), plain_grid, z_i_filter)
     if "view" in names:
         widen = args.view_widen
 
         def view(f):
             return f["mean"], f["variance"] * (1.0 + (widen - 1.0) * max(0.0, (30.0 - f["end_on"]) / 30.0))
 
-        variants[f"view (x{widen:g} end-on)"] = (view, plain_grid, ShapeFilter)
+        variants[f"view (x{widen:g} end-on)"] = (view, plain_grid, z_i_filter)
     if "discriminant" in names:
         if not args.fit:
             sys.exit("the discriminant variant needs --fit states files (apart from --choice and --report)")
@@ -377,7 +395,8 @@ def main():
     choice_streams = [s for streams in choice.values() for s in streams]
     report_streams = [s for streams in report.values() for s in streams]
     for label, streams in [("--choice", choice_streams), ("--report", report_streams)]:
-        found, true, false, frames = count(streams, args.node_threshold, args.node_drift, lambda f: (f["mean"], f["variance"]))
+        found, true, false, frames = count(streams, args.node_threshold, args.node_drift, lambda f: (f["mean"], f["variance"]),
+                                           z_i_filter)
         print(
             f"the node's own settings (threshold {args.node_threshold:g}, drift {args.node_drift:g}) on {label}: "
             f"{found}/{true} found, {false} false in {frames} frames = {1000 * false / frames:.2f} per 1,000"
