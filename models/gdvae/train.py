@@ -867,10 +867,8 @@ def train_vae(vae, bank, chosen: Recipe, state, save, run_dir, meshes: int, devi
             raise ValueError(f"the {name} targets hold {len(targets.rows)} meshes, the code bank {size // copies}")
         taught_on_device[name] = {"rows": targets.rows.to(device), "mask": targets.mask.to(device),
                                   "family": torch.from_numpy(targets.family).to(device)}
-    node_batches = None
-    if vae.config.omega_node_identity > 0:
-        if node_identity is None:
-            raise ValueError("vae.omega_node_identity is on but no node states were given (--node-states)")
+    node_batches = None  # (train() has checked that the states and omega_node_identity go together)
+    if node_identity is not None:
         node_batches = NodeIdentityBatches(node_identity.to(device), chosen.vae_batch, chosen.seed + 2 + state["iteration"])
     vae.train()
     iteration, budget_ended = start, False
