@@ -1,46 +1,46 @@
-"""The node's identity-change detector replayed offline, to compare detectors in seconds.
+"""The node's identity-change detectors replayed offline, to compare detectors in seconds.
 
-Reads `gdvae-node evaluate --states` files (every published state with its ground truth) and runs a
-replica of the shape filter of src/track/shape.rs (precision-weighted fusion, the gate, the CUSUM
-and its held frames) over each stream's raw z_I, first checking the replica against the node: every
-frame's distance must be the one the node published, or the script stops with an error. Then, for
-each detector variant, it sweeps the CUSUM's threshold h and drift k on the `--choice` files,
-chooses the pair that finds the most true changes with at most `--budget` false ones per 1,000
-frames, and reports that pair on the `--report` files (which nothing is chosen on):
+Reads `gdvae-node evaluate --states` files (every published state with its ground truth) and runs
+replicas of the shape filter of src/track/shape.rs over each stream's raw z_I, first checking the
+replica of the detector the states were made with (`--node-detector`, default the node's `step`)
+against the node: every frame's published figure (the step's statistic; the CUSUM's distance to
+the estimate) must be the replica's, or the script stops with an error. Then, for each detector
+variant, it sweeps its settings on the `--choice` files, chooses those that find the most true
+changes with at most `--budget` false ones per 1,000 frames (then the fewest false), and reports
+them on the `--report` files (which nothing is chosen on):
 
-- `shipped`: the node's detector, the encoder's z_I variances as the node scales them;
-- `view`: the same with a frame's variances widened up to `--view-widen` times as the subject is
+- `step`: the node's default detector on z_I: the last few frames' precision-weighted mean
+  against the frames before them, a frame's variance floored at each of `--step-floor` (squared
+  z_I spreads, one variant each); window, reference length and threshold swept;
+- `cusum`: the CUSUM on z_I (precision-weighted fusion, the gate, the held frames), the encoder's
+  variances as the node scales them; threshold h and drift k swept;
+- `view`: the CUSUM with a frame's variances widened up to `--view-widen` times as the subject is
   seen end-on (within 30 degrees of the line of sight, by the node's filtered heading and centre
   and the recording's camera position: what the node could compute itself);
 - `discriminant`: the encoder's x_c (`--fit-input x_c`, what the node's identity projection reads;
   `python -m gdvae fit-identity` fits the same) or z_I projected onto its `--directions` most
   discriminant directions for subjects of one family, whitened by the within-subject scatter,
   fitted on the `--fit` files' node clouds (each frame's variance 1 in that space; `--ridge`
-  shrinks the within-subject scatter towards its mean variance). The fit files must be apart from
-  both other sets (bench/tracking.sh fit-N). `--directions` and `--ridge` take comma-separated
-  lists: each pair is a variant, and the one that finds the most on `--choice` (then the fewest
-  false) is named.
+  shrinks the within-subject scatter towards its mean variance), through the CUSUM. The fit files
+  must be apart from both other sets (bench/tracking.sh fit-N). `--directions` and `--ridge` take
+  comma-separated lists: each pair is a variant, and the one that finds the most on `--choice`
+  (then the fewest false) is named.
 - with `discriminant`, `hetero`: the same projected code with a variance per frame and direction,
   log-linear in what the node knows of the frame (points kept and received, heading confidence,
   the yaw copies' scatter, the encoder's mean log-variances of z_I and z_E), fitted by maximum
   likelihood on the `--fit` files;
-- with `discriminant`, `step`: the same projected code through a detector of steps (the mean of
-  the last few frames against the frames before them) instead of the CUSUM, which slow wander
-  within a subject does not accumulate in; its window, reference length and threshold are chosen
-  like the CUSUM's threshold and drift.
+- with `discriminant`, `step`: the same projected code through the step detector.
 
     .venv/bin/python bench/change_detector.py --choice A-states.jsonl,... --report C-states.jsonl,... \
-        [--fit F-states.jsonl,...] [--fit-input x_c] [--directions 5] [--ridge 0.03] \
-        [--variants shipped,view,discriminant[,hetero,step]] [--budget 0.6] [--front]
-
-The states must be written with identity changes on z_I (`--set use_identity_projection=false`
-under a bundle with an identity projection), which the replica checks.
+        [--variants step,cusum,view,discriminant,hetero] [--budget 0.3] [--front] \
+        [--fit F-states.jsonl,... --fit-input x_c --directions 5 --ridge 0.03]
 
 `--front` also prints each variant's found/false trade-off over its whole grid on the report files
-(a measurement, not a choice). The node's own settings (`shape_gate`, `switch_frames`,
-`min_shape_variance`, `min_identity_variance`) are config/default.toml's, z_I's floor in the
-`--bundle`'s z_I spread (default: the default bundle); a change is found when reported within 10 frames
-of the true one (`gdvae-node evaluate`'s rule).
+(a measurement, not a choice). The node's other settings (`shape_gate`, `switch_frames`,
+`min_shape_variance`, `min_identity_variance`, the step's clip) are config/default.toml's, z_I's
+floors in the `--bundle`'s z_I spread (default: the default bundle); a change is found when
+reported within 10 frames of the true one (`gdvae-node evaluate`'s rule). The states must be
+written with identity changes on z_I (`use_identity_projection = false`, the default).
 """
 import argparse
 import functools
@@ -56,6 +56,9 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "models"))
 from gdvae.identity import fit_projection  # noqa: E402  (the kit's fit, which the bundle gets)
 
 GATE, SWITCH, MAX_HELD, MATURE, TOLERANCE = 2.0, 5, 300, 30, 10
+# The node's change detectors' defaults (config/default.toml), the step's floor in squared z_I spreads.
+CUSUM_DRIFT, CUSUM_THRESHOLD = 3.0, 10.0
+STEP_WINDOW, STEP_REFERENCE, STEP_THRESHOLD, STEP_MIN_VARIANCE, STEP_CLIP = 5, 15, 8.0, 0.1, 4.0
 # The fused variance's floors (config/default.toml): z_I's in squared z_I spreads (the bundle's
 # calibration.z_I_spread; 0.3413 for a bundle without one), a projected code's in its own units.
 MIN_SHAPE_VARIANCE, MIN_IDENTITY_VARIANCE, UNCALIBRATED_Z_I_SPREAD = 3.434e-3, 4e-4, 0.3413
@@ -148,27 +151,44 @@ def frame_features(state):
 
 
 class StepDetector:
-    """The `step` variant: the mean of the last `window` frames against the mean of up to
-    `reference` frames before them (unit variances), a change when their scaled squared distance
-    exceeds the threshold; the new subject's frames begin the next reference. Slow wander moves
-    both windows together; a change between subjects is a step."""
+    """src/track/shape.rs's `step` detector: the last `window` frames against up to `reference`
+    frames before them, each side fused as its precision-weighted mean (a frame's variance floored
+    at `floor`), a change when their mean squared standardized distance exceeds the threshold; the
+    new subject's frames begin the next reference. Slow wander moves both sides together; a change
+    between subjects is a step. On a projected code (unit variances) the sides are plain means.
+    A frame enters clipped to within `clip` standard deviations (its own and the reference mean's)
+    of the reference mean, per dimension, so that one wild frame moves the window's mean a bounded
+    amount and, later, the reference's; after a change the new subject's frames count unclipped."""
 
-    def __init__(self, threshold, shape):
-        self.threshold, (self.window, self.reference) = threshold, shape
-        self.codes, self.start = [], 0
+    def __init__(self, threshold, shape, floor=0.0, clip=math.inf):
+        self.threshold, (self.window, self.reference), self.floor, self.clip = threshold, shape, floor, clip
+        self.precision, self.value, self.raw, self.start = [], [], [], 0
+
+    def side(self, begin, end):
+        precision = np.sum(self.precision[begin:end], 0)
+        return np.sum(np.multiply(self.precision[begin:end], self.value[begin:end]), 0) / precision, precision
 
     def update(self, mean, variance):
-        self.codes.append(mean)
-        t = len(self.codes) - 1
+        precision = 1.0 / np.maximum(variance, max(self.floor, 1e-12))
+        t = len(self.precision)
         first = t - self.window + 1
+        begin = max(self.start, first - self.reference)
+        value = mean
+        if first - self.start >= SWITCH and math.isfinite(self.clip):
+            before, before_precision = self.side(begin, first)
+            limit = self.clip * np.sqrt(1 / precision + 1 / before_precision)
+            value = before + np.clip(mean - before, -limit, limit)
+        self.precision.append(precision)
+        self.value.append(value)
+        self.raw.append(mean)
         if first - self.start < SWITCH:
             return 0.0, False
-        begin = max(self.start, first - self.reference)
-        recent = np.mean(self.codes[first:], 0)
-        before = np.mean(self.codes[begin:first], 0)
-        distance = float(np.mean((recent - before) ** 2) / (1 / self.window + 1 / (first - begin)))
+        recent, recent_precision = self.side(first, t + 1)
+        before, before_precision = self.side(begin, first)
+        distance = float(np.mean((recent - before) ** 2 / (1 / recent_precision + 1 / before_precision)))
         if distance > self.threshold:
             self.start = first
+            self.value[first:] = self.raw[first:]
             return distance, True
         return distance, False
 
@@ -200,6 +220,7 @@ def load(path):
                 subject=r["truth"]["subject"],
                 family=r["truth"]["family"],
                 node_distance=r["state"]["shape"]["distance"],
+                node_statistic=r["state"]["shape"].get("change_statistic", 0.0),
                 yaw=r["state"]["raw"]["yaw"],
                 line=r["line"],
                 x_c=np.array(r["x_c"]) if "x_c" in r else None,
@@ -212,17 +233,19 @@ def load(path):
     return out
 
 
-def check_replica(streams, threshold, drift, make=ShapeFilter):
-    """The replica at the node's settings must give every frame the distance the node published."""
+def check_replica(streams, make, key):
+    """The replica at the node's settings must give every frame the figure the node published:
+    the distance to the estimate (`node_distance`, the CUSUM's input) or the step detector's
+    statistic (`node_statistic`)."""
     for name, frames, _ in streams:
-        detector = make(threshold, drift)
+        detector = make()
         for f in frames:
-            distance, _ = detector.update(f["mean"], f["variance"])
-            if abs(distance - f["node_distance"]) > 1e-3 * max(1.0, distance):
+            figure, _ = detector.update(f["mean"], f["variance"])
+            if abs(figure - f[key]) > 1e-3 * max(1.0, figure):
                 sys.exit(
-                    f"{name} frame {f['frame']}: the replica's distance {distance:.5f} is not the node's "
-                    f"{f['node_distance']:.5f}: src/track/shape.rs changed, or the states were made with "
-                    f"other [track] settings than --node-threshold/--node-drift, or with another bundle than --bundle"
+                    f"{name} frame {f['frame']}: the replica's {key} {figure:.5f} is not the node's "
+                    f"{f[key]:.5f}: src/track/shape.rs changed, or the states were made with other [track] "
+                    f"settings than --node-detector and its settings, or with another bundle than --bundle"
                 )
 
 
@@ -320,15 +343,20 @@ def main():
     parser.add_argument("--choice", required=True, help="states files the thresholds are chosen on (comma-separated)")
     parser.add_argument("--report", required=True, help="states files the choice is reported on (comma-separated)")
     parser.add_argument("--fit", help="states files the discriminant is fitted on (comma-separated)")
-    parser.add_argument("--variants", default="shipped,view,discriminant")
+    parser.add_argument("--variants", default="cusum,step")
     parser.add_argument("--budget", type=float, default=0.6, help="false changes per 1,000 frames allowed on --choice")
     parser.add_argument("--view-widen", type=float, default=4.0)
     parser.add_argument("--hetero-without", default="", help="FEATURES the hetero variant leaves out (comma-separated names)")
     parser.add_argument("--fit-input", default="x_c", choices=["x_c", "z_I"], help="what the discriminant projects")
+    parser.add_argument("--step-floor", default="0.1,0.34,1",
+                        help="the z_I step variant's floors on a frame's variance, in squared z_I spreads (comma-separated)")
     parser.add_argument("--directions", default="5", help="comma-separated")
     parser.add_argument("--ridge", default="0.03", help="comma-separated")
-    parser.add_argument("--node-threshold", type=float, default=10.0, help="the [track] cusum_threshold the states were made with")
-    parser.add_argument("--node-drift", type=float, default=3.0, help="the [track] cusum_drift the states were made with")
+    parser.add_argument("--node-detector", default="step", choices=["step", "cusum"],
+                        help="the [track] change_detector the states were made with (on z_I; default: the node's)")
+    parser.add_argument("--node-threshold", type=float, help="the [track] cusum_threshold or step_threshold the states were "
+                        f"made with (default: the node's, {CUSUM_THRESHOLD:g} or {STEP_THRESHOLD:g})")
+    parser.add_argument("--node-drift", type=float, default=CUSUM_DRIFT, help="the [track] cusum_drift the states were made with")
     parser.add_argument("--front", action="store_true", help="also print each variant's trade-off on --report")
     parser.add_argument("--bundle", default=str(DEFAULT_BUNDLE),
                         help="the bundle the states were made with: its z_I spread sets z_I's variance floor "
@@ -341,15 +369,25 @@ def main():
     choice = {p: load(p) for p in args.choice.split(",")}
     report = {p: load(p) for p in args.report.split(",")}
     z_i_filter = functools.partial(ShapeFilter, floor=MIN_SHAPE_VARIANCE * z_i_spread(args.bundle) ** 2)
+    if args.node_detector == "step":
+        node_threshold = args.node_threshold or STEP_THRESHOLD
+        node_step = functools.partial(StepDetector, floor=STEP_MIN_VARIANCE * z_i_spread(args.bundle) ** 2, clip=STEP_CLIP)
+        node = (lambda: node_step(node_threshold, (STEP_WINDOW, STEP_REFERENCE)), "node_statistic")
+        node_settings = (node_threshold, (STEP_WINDOW, STEP_REFERENCE), node_step)
+    else:
+        node_threshold = args.node_threshold or CUSUM_THRESHOLD
+        node = (lambda: z_i_filter(node_threshold, args.node_drift), "node_distance")
+        node_settings = (node_threshold, args.node_drift, z_i_filter)
     for streams in [*choice.values(), *report.values()]:
-        check_replica(streams, args.node_threshold, args.node_drift, z_i_filter)
-    print(f"replica checked against the node's distances on {len(choice) + len(report)} files")
+        check_replica(streams, *node)
+    print(f"replica of the node's {args.node_detector} detector checked against its published figures on "
+          f"{len(choice) + len(report)} files")
 
     variants = {}
     plain_grid = list(itertools.product([10, 6, 4, 3], [3.5, 3.0, 2.5, 2.25, 2.0, 1.75]))
     names = args.variants.split(",")
-    if "shipped" in names:
-        variants["shipped"] = (lambda f: (f["mean"], f["variance"]), plain_grid, z_i_filter)
+    if "cusum" in names:
+        variants["cusum"] = (lambda f: (f["mean"], f["variance"]), plain_grid, z_i_filter)
     if "view" in names:
         widen = args.view_widen
 
@@ -357,6 +395,15 @@ def main():
             return f["mean"], f["variance"] * (1.0 + (widen - 1.0) * max(0.0, (30.0 - f["end_on"]) / 30.0))
 
         variants[f"view (x{widen:g} end-on)"] = (view, plain_grid, z_i_filter)
+    step_shapes = list(itertools.product([3, 5, 8], [15, 30, 60]))
+    if "step" in names:
+        spread = z_i_spread(args.bundle)
+        for floor in [float(f) for f in args.step_floor.split(",")]:
+            variants[f"z_I, step (frame variance floor {floor:g} squared z_I spreads)"] = (
+                lambda f: (f["mean"], f["variance"]),
+                list(itertools.product([2, 2.5, 3, 3.5, 4, 5, 6, 8, 10], step_shapes)),
+                functools.partial(StepDetector, floor=floor * spread**2),
+            )
     if "discriminant" in names:
         if not args.fit:
             sys.exit("the discriminant variant needs --fit states files (apart from --choice and --report)")
@@ -385,20 +432,19 @@ def main():
 
                 variants[f"{name}, hetero"] = (hetero, cusum_grid, ShapeFilter)
             if "step" in names:
-                shapes = list(itertools.product([3, 5, 8], [15, 30, 60, 120]))
                 variants[f"{name}, step"] = (
                     lambda f, rows=rows, unit=unit: (rows @ f[key], unit),
-                    list(itertools.product([4, 6, 8, 10, 12, 15, 20, 25, 30, 40], shapes)),
+                    list(itertools.product([4, 6, 8, 10, 12, 15, 20, 25, 30, 40], step_shapes)),
                     StepDetector,
                 )
 
     choice_streams = [s for streams in choice.values() for s in streams]
     report_streams = [s for streams in report.values() for s in streams]
     for label, streams in [("--choice", choice_streams), ("--report", report_streams)]:
-        found, true, false, frames = count(streams, args.node_threshold, args.node_drift, lambda f: (f["mean"], f["variance"]),
-                                           z_i_filter)
+        found, true, false, frames = count(streams, node_settings[0], node_settings[1], lambda f: (f["mean"], f["variance"]),
+                                           node_settings[2])
         print(
-            f"the node's own settings (threshold {args.node_threshold:g}, drift {args.node_drift:g}) on {label}: "
+            f"the node's own settings ({args.node_detector}, threshold {node_settings[0]:g}, {node_settings[1]}) on {label}: "
             f"{found}/{true} found, {false} false in {frames} frames = {1000 * false / frames:.2f} per 1,000"
         )
     chosen = {}
@@ -409,7 +455,8 @@ def main():
             continue
         threshold, drift, (found, true, false, frames) = best
         chosen[name] = (found, -false)
-        settings = (f"threshold {threshold}, (window, reference) {drift}" if detector is StepDetector
+        stepped = detector is StepDetector or getattr(detector, "func", None) is StepDetector
+        settings = (f"threshold {threshold}, (window, reference) {drift}" if stepped
                     else f"cusum_threshold {threshold}, cusum_drift {drift}")
         print(f"\n{name}: chosen {settings} ({found}/{true} found, {false} false in {frames} frames on --choice)")
         total = np.zeros(4, dtype=int)

@@ -541,8 +541,8 @@ fn evaluate(args: EvaluateArgs) -> Result<()> {
             .calibration
             .identity_directions();
         let threshold = match track.change_detector {
-            gdvae_node::config::ChangeDetector::Cusum => Some(track.cusum().1 as f64),
             gdvae_node::config::ChangeDetector::Consecutive => None,
+            _ => Some(track.change_threshold() as f64),
         };
         let written = gdvae_node::evaluate::write_plots(&report, folder, config.track.shape_gate as f64, threshold)?;
         eprintln!("evaluate: {} plot(s) in {}", written.len(), folder.display());

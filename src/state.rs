@@ -87,10 +87,11 @@ pub struct Shape {
     pub distance: f32,
     /// Fraction of recent frames (up to 20, since the last change) that were fused.
     pub confidence: f32,
-    /// The change detector's statistic after this frame (CUSUM of distances; a change is reported
-    /// when it reaches `track.cusum_threshold`, or `track.identity_cusum_threshold` on an identity
-    /// projection). Under `change_detector = "consecutive"`: the
-    /// current run of outliers.
+    /// The change detector's statistic after this frame: under `change_detector = "step"` the
+    /// distance between its window and its reference (a change when it exceeds
+    /// `track.step_threshold`, or `track.identity_step_threshold` on an identity projection);
+    /// under `"cusum"` the CUSUM of distances (a change when it reaches `track.cusum_threshold`,
+    /// or `track.identity_cusum_threshold`); under `"consecutive"` the current run of outliers.
     #[serde(default)]
     pub change_statistic: f32,
 }

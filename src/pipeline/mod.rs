@@ -275,14 +275,18 @@ pub fn run(
         }
         config.track.identity_projection = bundle.manifest.calibration.identity_directions();
         let t = &config.track;
-        let (drift, threshold) = t.cusum();
+        let detector = format!("{:?} detector, threshold {}", t.change_detector, t.change_threshold()).to_lowercase();
         match (t.identity_directions(), &t.identity_projection) {
             (Some(rows), _) => log::info!(
-                "track: identity changes on the bundle's identity projection ({} directions of x_c; drift {drift}, threshold {threshold})",
+                "track: identity changes on the bundle's identity projection ({} directions of x_c; {detector})",
                 rows.len()
             ),
-            (None, Some(_)) => log::info!("track: identity changes on z_I (use_identity_projection = false)"),
-            (None, None) => log::info!("track: identity changes on z_I (the bundle has no identity projection)"),
+            (None, Some(_)) => {
+                log::info!("track: identity changes on z_I ({detector}; use_identity_projection = false)")
+            }
+            (None, None) => {
+                log::info!("track: identity changes on z_I ({detector}; the bundle has no identity projection)")
+            }
         }
         // The heading filter's noise (12 degrees) was chosen on the 4 yaw copies' fused reading;
         // for one copy 25 was (config/default.toml; docs/tracking.md "The yaw copies' scatter,

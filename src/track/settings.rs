@@ -28,6 +28,9 @@ pub enum ChangeDetector {
     Cusum,
     /// `switch_frames` frames beyond the gate in a row.
     Consecutive,
+    /// A step between the last `step_window` frames and up to `step_reference` frames before them
+    /// (`track::shape`): slow wander within one subject moves both sides together.
+    Step,
 }
 
 /// The bundle's identity projection as the shape filter uses it: its rows, each a direction of x_c
@@ -56,6 +59,22 @@ pub struct TrackSettings {
     pub cusum_drift: f32,
     /// CUSUM threshold h: a change is reported when the statistic reaches it.
     pub cusum_threshold: f32,
+    /// Step detector: the last `step_window` frames are compared with up to `step_reference`
+    /// frames before them (since the last change), each side the precision-weighted mean of its
+    /// frames; a change when their mean squared standardized distance exceeds `step_threshold`
+    /// (`identity_step_threshold` on the identity projection's code).
+    pub step_window: usize,
+    pub step_reference: usize,
+    pub step_threshold: f32,
+    pub identity_step_threshold: f32,
+    /// Floor on one frame's z_I variance in the step detector, in squared z_I spreads: a frame
+    /// the encoder is sure of weighs no more than this allows, since frames of one subject wander
+    /// together more than the encoder's variances say.
+    pub step_min_variance: f32,
+    /// A frame enters the step detector clipped to within this many standard deviations (its own
+    /// and the reference mean's) of the reference's mean, per dimension: one wild frame then
+    /// moves the window's mean a bounded amount (`inf`: no clip).
+    pub step_clip: f32,
     /// Detect identity changes on the bundle's identity projection of x_c when it has one
     /// (`calibration.identity_projection`), else on z_I.
     pub use_identity_projection: bool,
@@ -128,10 +147,16 @@ impl Default for TrackSettings {
             switch_frames: 5,
             min_shape_variance: 3.434e-3,
             shape_variance_scale: 2.2,
-            change_detector: ChangeDetector::Cusum,
+            change_detector: ChangeDetector::Step,
             cusum_drift: 3.0,
             cusum_threshold: 10.0,
-            use_identity_projection: true,
+            step_window: 5,
+            step_reference: 15,
+            step_threshold: 8.0,
+            identity_step_threshold: 25.0,
+            step_min_variance: 0.1,
+            step_clip: 4.0,
+            use_identity_projection: false,
             identity_cusum_drift: 9.0,
             identity_cusum_threshold: 20.0,
             min_identity_variance: 4e-4,
@@ -165,9 +190,11 @@ impl TrackSettings {
     /// The settings with their z_I distances, given in z_I spreads (how far one subject's z_I
     /// wanders over its poses and views), turned into model units for a bundle whose spread is
     /// `spread`: a bundle whose z_I is twice as wide gets twice the distances, and the same
-    /// behaviour. `min_shape_variance` (squared), `objects.shape_scale`, `objects.reid_distance`.
+    /// behaviour. `min_shape_variance` and `step_min_variance` (squared), `objects.shape_scale`,
+    /// `objects.reid_distance`.
     pub fn in_model_units(mut self, spread: f32) -> Self {
         self.min_shape_variance *= spread * spread;
+        self.step_min_variance *= spread * spread;
         self.objects.shape_scale *= spread;
         self.objects.reid_distance *= spread;
         self
@@ -189,6 +216,24 @@ impl TrackSettings {
         }
     }
 
+    /// The step detector's threshold in the space the shape filter works in.
+    pub fn step_threshold(&self) -> f32 {
+        match self.identity_directions() {
+            Some(_) => self.identity_step_threshold,
+            None => self.step_threshold,
+        }
+    }
+
+    /// The change detector's threshold on the published `change_statistic` in the space the
+    /// shape filter works in (the consecutive rule's: `switch_frames` outliers).
+    pub fn change_threshold(&self) -> f32 {
+        match self.change_detector {
+            ChangeDetector::Cusum => self.cusum().1,
+            ChangeDetector::Consecutive => self.switch_frames as f32,
+            ChangeDetector::Step => self.step_threshold(),
+        }
+    }
+
     pub fn validate(&self) -> Result<(), String> {
         let positive = [
             ("shape_gate", self.shape_gate),
@@ -198,6 +243,9 @@ impl TrackSettings {
             ("cusum_threshold", self.cusum_threshold),
             ("identity_cusum_drift", self.identity_cusum_drift),
             ("identity_cusum_threshold", self.identity_cusum_threshold),
+            ("step_threshold", self.step_threshold),
+            ("identity_step_threshold", self.identity_step_threshold),
+            ("step_min_variance", self.step_min_variance),
             ("min_identity_variance", self.min_identity_variance),
             ("min_cutoff_hz", self.min_cutoff_hz),
             ("nominal_rate_hz", self.nominal_rate_hz),
@@ -236,6 +284,22 @@ impl TrackSettings {
         }
         if self.switch_frames == 0 {
             return Err("track.switch_frames must be at least 1".into());
+        }
+        if !(self.step_clip > 0.0) {
+            return Err(format!(
+                "track.step_clip = {} must be positive (inf: no clip)",
+                self.step_clip
+            ));
+        }
+        if self.step_window == 0 {
+            return Err("track.step_window must be at least 1".into());
+        }
+        if self.step_reference < self.switch_frames {
+            return Err(format!(
+                "track.step_reference = {} must be at least switch_frames ({}): the step detector compares its \
+                 window with at least that many frames before it",
+                self.step_reference, self.switch_frames
+            ));
         }
         if !(self.beta >= 0.0 && self.beta.is_finite()) {
             return Err(format!("track.beta = {} must be >= 0", self.beta));

@@ -12,6 +12,15 @@
 //!   frames): if the suspicion clears they are fused late, if a change is reported the new
 //!   identity starts from them.
 //! - `consecutive`: `switch_frames` frames beyond the gate in a row.
+//! - `step`: the last `step_window` frames against up to `step_reference` frames before them
+//!   (since the last change), each side the precision-weighted mean of its frames (a frame's z_I
+//!   variance floored at `step_min_variance`); a change when their mean squared standardized
+//!   distance exceeds `step_threshold`, tested once at least `switch_frames` frames precede the
+//!   window. Each frame enters clipped to within `step_clip` standard deviations of the
+//!   reference's mean, per dimension, so that one wild frame moves either side a bounded amount. The new identity starts from the window's frames. A subject's z_I wanders slowly
+//!   with its pose and view, which moves both sides together and so never adds up as it does in
+//!   the CUSUM against a fixed estimate; a change of subject is a step. Frames are fused (for the
+//!   published z_I) as they come, by the gate alone.
 //!
 //! The fused variance has a floor (`min_shape_variance`; `min_identity_variance` for the identity
 //! projection's code below), which makes the estimate a slowly forgetting average: it follows the
@@ -66,6 +75,29 @@ struct Held {
     inlier: bool,
     /// Already in the estimate (a young estimate takes its inliers at once).
     fused: bool,
+}
+
+/// A frame as the step detector keeps it: the frame itself (a change restarts the estimate from
+/// it) and its code in the detector's space, clipped on entry (`step_clip`), with its precisions.
+#[derive(Debug, Clone)]
+struct StepFrame {
+    held: Held,
+    raw: Vec<f64>,
+    value: Vec<f64>,
+    precision: Vec<f64>,
+}
+
+/// The precision-weighted mean of some step frames and its precision, per dimension.
+fn step_side<'a>(frames: impl Iterator<Item = &'a StepFrame>, width: usize) -> (Vec<f64>, Vec<f64>) {
+    let (mut precision, mut weighted) = (vec![0.0f64; width], vec![0.0f64; width]);
+    for frame in frames {
+        for k in 0..width {
+            precision[k] += frame.precision[k];
+            weighted[k] += frame.precision[k] * frame.value[k];
+        }
+    }
+    let mean = weighted.iter().zip(&precision).map(|(w, p)| w / p).collect();
+    (mean, precision)
 }
 
 /// A precision-weighted running product of Gaussians, with a floor on its variance.
@@ -123,6 +155,15 @@ pub struct ShapeFilter {
     detector: ChangeDetector,
     drift: f32,
     threshold: f32,
+    step_window: usize,
+    step_reference: usize,
+    step_threshold: f32,
+    /// Floor on a frame's z_I variance in the step detector (model units); none on the
+    /// projection's code, whose frames have unit variance.
+    step_floor: f32,
+    step_clip: f32,
+    /// The step detector's frames since the last change, at most `step_window + step_reference`.
+    steps: VecDeque<StepFrame>,
     projection: Option<IdentityDirections>,
     /// The published z_I estimate.
     shape: Fusion,
@@ -148,6 +189,12 @@ impl ShapeFilter {
             detector: settings.change_detector,
             drift,
             threshold,
+            step_window: settings.step_window,
+            step_reference: settings.step_reference,
+            step_threshold: settings.step_threshold(),
+            step_floor: settings.step_min_variance,
+            step_clip: settings.step_clip,
+            steps: VecDeque::new(),
             projection: settings.identity_directions().cloned(),
             shape: Fusion::default(),
             code: None,
@@ -164,6 +211,7 @@ impl ShapeFilter {
         match self.detector {
             ChangeDetector::Cusum => self.threshold,
             ChangeDetector::Consecutive => self.switch_frames as f32,
+            ChangeDetector::Step => self.step_threshold,
         }
     }
 
@@ -198,12 +246,14 @@ impl ShapeFilter {
             variance: vec![1.0; rows.len()],
         });
         if self.frames == 0 || self.shape.mean.len() != mean.len() {
-            self.restart(vec![Held {
+            let first = Held {
                 shape,
                 code,
                 inlier: true,
                 fused: true,
-            }]);
+            };
+            self.steps = VecDeque::from([self.step_frame(first.clone())]);
+            self.restart(vec![first]);
             return self.record(true, 0.0, None);
         }
         let distance = match (&self.code, &code) {
@@ -219,7 +269,87 @@ impl ShapeFilter {
         match self.detector {
             ChangeDetector::Consecutive => self.consecutive(frame, distance),
             ChangeDetector::Cusum => self.cusum(frame, distance),
+            ChangeDetector::Step => self.step(frame, distance),
         }
+    }
+
+    fn step(&mut self, frame: Held, distance: f32) -> ShapeUpdate {
+        let inlier = frame.inlier;
+        self.steps.push_back(self.step_frame(frame.clone()));
+        if self.steps.len() > self.step_window + self.step_reference {
+            self.steps.pop_front();
+        }
+        let before = self.steps.len().saturating_sub(self.step_window);
+        self.statistic = if before >= self.switch_frames {
+            self.step_distance(before)
+        } else {
+            0.0
+        };
+        if self.statistic > self.step_threshold {
+            // The window's frames are the new subject's: they start its estimate and its reference,
+            // unclipped.
+            let mut window: Vec<StepFrame> = self.steps.drain(before..).collect();
+            for frame in &mut window {
+                frame.value.clone_from(&frame.raw);
+            }
+            let previous = self.identity;
+            self.restart(window.iter().map(|f| f.held.clone()).collect());
+            self.steps = window.into();
+            self.identity = previous + 1;
+            self.recent.clear();
+            let change = IdentityChange {
+                previous,
+                identity: self.identity,
+            };
+            return self.record(true, distance, Some(change));
+        }
+        if inlier {
+            self.fuse(&frame);
+        }
+        self.record(inlier, distance, None)
+    }
+
+    /// A frame in the step detector's space: the projection's code when there is one (unit
+    /// variances), else z_I with its variances floored at `step_min_variance`.
+    fn step_frame(&self, held: Held) -> StepFrame {
+        let (space, floor) = match &held.code {
+            Some(code) if self.projection.is_some() => (code, 0.0),
+            _ => (&held.shape, self.step_floor as f64),
+        };
+        let raw: Vec<f64> = space.mean.iter().map(|m| *m as f64).collect();
+        let precision = space
+            .variance
+            .iter()
+            .map(|v| 1.0 / (*v as f64).max(floor).max(1e-12))
+            .collect();
+        StepFrame {
+            value: raw.clone(),
+            raw,
+            precision,
+            held,
+        }
+    }
+
+    /// The step detector's statistic: the mean over dimensions of (m_w - m_r)^2 / (1/P_w + 1/P_r)
+    /// between the precision-weighted means of the last `step_window` frames (w) and the frames
+    /// before them (r, up to index `before`). The newest frame is first clipped to within
+    /// `step_clip` standard deviations (its own and m_r's) of m_r.
+    fn step_distance(&mut self, before: usize) -> f32 {
+        let width = self.steps[0].raw.len();
+        let (reference, reference_precision) = step_side(self.steps.range(..before), width);
+        let clip = self.step_clip as f64;
+        if clip.is_finite() {
+            let newest = self.steps.back_mut().expect("the frame just pushed");
+            for k in 0..width {
+                let limit = clip * (1.0 / newest.precision[k] + 1.0 / reference_precision[k]).sqrt();
+                newest.value[k] = reference[k] + (newest.raw[k] - reference[k]).clamp(-limit, limit);
+            }
+        }
+        let (window, window_precision) = step_side(self.steps.range(before..), width);
+        let sum: f64 = (0..width)
+            .map(|k| (window[k] - reference[k]).powi(2) / (1.0 / window_precision[k] + 1.0 / reference_precision[k]))
+            .sum();
+        (sum / width.max(1) as f64) as f32
     }
 
     fn consecutive(&mut self, frame: Held, distance: f32) -> ShapeUpdate {

@@ -42,6 +42,27 @@ fn an_empty_config_is_the_documented_defaults() {
     // crop and source, and a path relative to config/) it says so in its comments.
     assert_eq!(empty.track.shape_gate, documented.track.shape_gate);
     assert_eq!(empty.track.switch_frames, documented.track.switch_frames);
+    assert_eq!(empty.track.change_detector, documented.track.change_detector);
+    assert_eq!(
+        empty.track.use_identity_projection,
+        documented.track.use_identity_projection
+    );
+    assert_eq!(
+        (empty.track.step_window, empty.track.step_reference),
+        (documented.track.step_window, documented.track.step_reference)
+    );
+    assert_eq!(
+        [
+            empty.track.step_threshold,
+            empty.track.step_min_variance,
+            empty.track.step_clip
+        ],
+        [
+            documented.track.step_threshold,
+            documented.track.step_min_variance,
+            documented.track.step_clip
+        ]
+    );
     assert_eq!(empty.model.max_batch, documented.model.max_batch);
     assert_eq!(empty.pipeline.queue, documented.pipeline.queue);
     assert_eq!(empty.prepare.min_points, documented.prepare.min_points);
@@ -63,6 +84,10 @@ fn bad_values_are_refused_with_the_key_named() {
         ("[prepare]\ncrop = [1.0, 0.0, 0.0, 0.0, 1.0, 1.0]\n", "crop"),
         ("[prepare]\ncluster_join_m = -0.1\n", "prepare.cluster_join_m"),
         ("[track]\nmotion_min_travel_m = -0.5\n", "track.motion_min_travel_m"),
+        ("[track]\nstep_reference = 3\n", "track.step_reference"),
+        ("[track]\nstep_window = 0\n", "track.step_window"),
+        ("[track]\nstep_clip = 0.0\n", "track.step_clip"),
+        ("[track]\nstep_min_variance = -1.0\n", "track.step_min_variance"),
         ("[prepare]\ncluster_join_m = nan\n", "prepare.cluster_join_m"),
         (
             "[prepare]\nsensor_to_gravity_rotation = [[2.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]\n",

@@ -38,6 +38,7 @@ fn model_units() -> TrackSettings {
 
 fn calibrated() -> TrackSettings {
     TrackSettings {
+        change_detector: ChangeDetector::Cusum,
         shape_gate: 2.5,
         cusum_drift: 2.5,
         shape_variance_scale: 1.0,
@@ -253,6 +254,7 @@ fn frames_reported(
 /// Settings for frames with calibrated variances and a one-sigma change.
 fn drift_settings() -> TrackSettings {
     TrackSettings {
+        change_detector: ChangeDetector::Cusum,
         shape_gate: 2.5,
         switch_frames: 3,
         cusum_drift: 1.3,
@@ -404,6 +406,120 @@ fn one_wild_frame_adds_a_bounded_amount_of_evidence() {
     assert_eq!(filter.identity(), 0);
     let moved = largest_difference(filter.mean(), &before);
     assert!(moved < 0.05, "the wild frame was not fused (moved {moved})");
+}
+
+// ---- Identity changes by the step detector: a step between the last frames and those before.
+
+/// The step detector on frames with calibrated variances (noise 0.1 a dimension), its floor
+/// below them.
+fn step_settings() -> TrackSettings {
+    TrackSettings {
+        change_detector: ChangeDetector::Step,
+        shape_variance_scale: 1.0,
+        step_min_variance: 1e-6,
+        ..model_units()
+    }
+}
+
+#[test]
+fn the_step_statistic_is_the_standardized_distance_between_the_window_and_its_reference() {
+    // 15 frames at a, then 5 at b, every frame of variance v: the window's mean is b, the
+    // reference's a, with precisions 5 / v and 15 / v, so the statistic is (b - a)^2 15 / (4 v).
+    let (a, b, v) = (object(0.0), object(0.05), 0.01f32);
+    let statistic_after = |settings: &TrackSettings| {
+        let mut filter = ShapeFilter::new(settings);
+        let mut last = None;
+        for mean in std::iter::repeat(&a).take(15).chain(std::iter::repeat(&b).take(5)) {
+            last = Some(filter.update(mean, &vec![v.ln(); DIMENSIONS]));
+        }
+        let last = last.unwrap();
+        assert!(last.change.is_none());
+        last.statistic
+    };
+    let unreachable = TrackSettings {
+        step_threshold: 1e9,
+        step_clip: f32::INFINITY,
+        ..step_settings()
+    };
+    let expected = 0.05f32.powi(2) * 15.0 / (4.0 * v);
+    let got = statistic_after(&unreachable);
+    assert!(
+        (got - expected).abs() < 1e-3 * expected,
+        "statistic {got}, expected {expected}"
+    );
+    // A floor above the frames' variance takes their place.
+    let floored = statistic_after(&TrackSettings {
+        step_min_variance: 4.0 * v,
+        ..unreachable
+    });
+    assert!(
+        (floored - expected / 4.0).abs() < 1e-3 * expected,
+        "floored statistic {floored}"
+    );
+}
+
+#[test]
+fn the_step_detector_reports_a_step_and_not_a_slow_wander_the_cusum_takes_for_a_change() {
+    let settings = step_settings();
+    let cusum = drift_settings();
+    let mut wander_cusum_changes = 0;
+    for seed in 0..10 {
+        let mut rng = ChaCha8Rng::seed_from_u64(300 + seed);
+        // A step of two sigma a dimension after 120 frames: found within the window.
+        let mut filter = ShapeFilter::new(&settings);
+        for (mean, lv) in frames(&object(0.0), 0.1, 120, &mut rng) {
+            assert!(filter.update(&mean, &lv).change.is_none(), "seed {seed}: false change");
+        }
+        let found = frames(&object(0.2), 0.1, 60, &mut rng)
+            .iter()
+            .position(|(mean, lv)| filter.update(mean, lv).change.is_some())
+            .unwrap_or_else(|| panic!("seed {seed}: the step was not found"));
+        assert!(
+            found < settings.step_window,
+            "seed {seed}: found {found} frames after the step"
+        );
+        assert_eq!(filter.identity(), 1);
+        // Twice that, as a wander over 100 frames: never a change for the step detector.
+        let (mut step, mut cusum_filter) = (ShapeFilter::new(&settings), ShapeFilter::new(&cusum));
+        for t in 0..100 {
+            let (mean, lv) = frames(&object(0.4 * t as f32 / 100.0), 0.1, 1, &mut rng).remove(0);
+            assert!(
+                step.update(&mean, &lv).change.is_none(),
+                "seed {seed}: the wander made a step at {t}"
+            );
+            wander_cusum_changes += usize::from(cusum_filter.update(&mean, &lv).change.is_some());
+        }
+    }
+    // What the step detector is measured against: the CUSUM on a fixed estimate adds the wander up.
+    assert!(
+        wander_cusum_changes > 0,
+        "the CUSUM took the wander for no change either"
+    );
+}
+
+#[test]
+fn one_wild_frame_is_not_a_step_with_the_clip_and_is_one_without() {
+    let clipped = step_settings();
+    let unclipped = TrackSettings {
+        step_clip: f32::INFINITY,
+        ..clipped.clone()
+    };
+    let changes = |settings: &TrackSettings| {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let mut filter = ShapeFilter::new(settings);
+        let mut frames = frames(&object(0.0), 0.1, 80, &mut rng);
+        frames[40].0.iter_mut().for_each(|m| *m += 100.0);
+        frames
+            .iter()
+            .filter(|(mean, lv)| filter.update(mean, lv).change.is_some())
+            .count()
+    };
+    assert_eq!(
+        changes(&clipped),
+        0,
+        "a wild frame moves the window's mean a bounded amount"
+    );
+    assert!(changes(&unclipped) > 0, "without the clip it is a step");
 }
 
 // ---- Heading tracker.
@@ -866,6 +982,7 @@ fn under_an_identity_projection_a_change_only_x_c_shows_is_found_and_z_i_is_stil
     row[0] = 1.0;
     let projected = TrackSettings {
         identity_projection: Some(std::sync::Arc::new(vec![row])),
+        use_identity_projection: true,
         ..calibrated()
     };
     let on_z_i = TrackSettings {
@@ -911,6 +1028,8 @@ fn the_identity_projection_s_detector_does_not_follow_the_z_i_spread() {
         let mut rng = ChaCha8Rng::seed_from_u64(11);
         let settings = TrackSettings {
             identity_projection: Some(std::sync::Arc::new(vec![row.clone()])),
+            use_identity_projection: true,
+            change_detector: ChangeDetector::Cusum,
             ..TrackSettings::default().in_model_units(spread)
         };
         let mut filter = ShapeFilter::new(&settings);
@@ -924,4 +1043,31 @@ fn the_identity_projection_s_detector_does_not_follow_the_z_i_spread() {
     let narrow = statistics(UNCALIBRATED_Z_I_SPREAD);
     assert!(narrow.iter().any(|&s| s > 0.0));
     assert_eq!(narrow, statistics(10.0 * UNCALIBRATED_Z_I_SPREAD));
+}
+
+/// The step detector's floor on a frame's z_I variance is in squared z_I spreads: a bundle whose
+/// z_I is ten times as wide (codes and variances with it) gets the same statistic, frame by frame.
+#[test]
+fn the_step_detector_on_z_i_follows_the_z_i_spread() {
+    let statistics = |scale: f32| {
+        let mut rng = ChaCha8Rng::seed_from_u64(12);
+        let settings = TrackSettings::default().in_model_units(scale * UNCALIBRATED_Z_I_SPREAD);
+        assert_eq!(settings.change_detector, ChangeDetector::Step);
+        let mut filter = ShapeFilter::new(&settings);
+        let mut frames = frames(&object(0.0), 0.02, 60, &mut rng);
+        frames.extend(frames_reported(&object(0.1), 0.02, 0.01, 60, &mut rng)); // below the floor
+        frames
+            .iter()
+            .map(|(mean, lv)| {
+                let mean: Vec<f32> = mean.iter().map(|m| m * scale).collect();
+                let lv: Vec<f32> = lv.iter().map(|l| l + 2.0 * scale.ln()).collect();
+                filter.update(&mean, &lv).statistic
+            })
+            .collect::<Vec<_>>()
+    };
+    let (narrow, wide) = (statistics(1.0), statistics(10.0));
+    assert!(narrow.iter().any(|&s| s > 1.0));
+    for (t, (a, b)) in narrow.iter().zip(&wide).enumerate() {
+        assert!((a - b).abs() <= 1e-3 * a.max(1.0), "frame {t}: {a} against {b}");
+    }
 }
