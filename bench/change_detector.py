@@ -233,6 +233,17 @@ def load(path):
     return out
 
 
+def node_detector(kind, bundle, threshold=None, drift=CUSUM_DRIFT):
+    """The replica of the node's `kind` detector on z_I with the node's defaults (or `threshold`,
+    `drift`) for `bundle`: ((threshold, drift or (window, reference), detector class), the state's
+    figure it reproduces)."""
+    if kind == "step":
+        step = functools.partial(StepDetector, floor=STEP_MIN_VARIANCE * z_i_spread(bundle) ** 2, clip=STEP_CLIP)
+        return (threshold or STEP_THRESHOLD, (STEP_WINDOW, STEP_REFERENCE), step), "node_statistic"
+    cusum = functools.partial(ShapeFilter, floor=MIN_SHAPE_VARIANCE * z_i_spread(bundle) ** 2)
+    return (threshold or CUSUM_THRESHOLD, drift, cusum), "node_distance"
+
+
 def check_replica(streams, make, key):
     """The replica at the node's settings must give every frame the figure the node published:
     the distance to the estimate (`node_distance`, the CUSUM's input) or the step detector's
@@ -369,17 +380,9 @@ def main():
     choice = {p: load(p) for p in args.choice.split(",")}
     report = {p: load(p) for p in args.report.split(",")}
     z_i_filter = functools.partial(ShapeFilter, floor=MIN_SHAPE_VARIANCE * z_i_spread(args.bundle) ** 2)
-    if args.node_detector == "step":
-        node_threshold = args.node_threshold or STEP_THRESHOLD
-        node_step = functools.partial(StepDetector, floor=STEP_MIN_VARIANCE * z_i_spread(args.bundle) ** 2, clip=STEP_CLIP)
-        node = (lambda: node_step(node_threshold, (STEP_WINDOW, STEP_REFERENCE)), "node_statistic")
-        node_settings = (node_threshold, (STEP_WINDOW, STEP_REFERENCE), node_step)
-    else:
-        node_threshold = args.node_threshold or CUSUM_THRESHOLD
-        node = (lambda: z_i_filter(node_threshold, args.node_drift), "node_distance")
-        node_settings = (node_threshold, args.node_drift, z_i_filter)
+    node_settings, node_figure = node_detector(args.node_detector, args.bundle, args.node_threshold, args.node_drift)
     for streams in [*choice.values(), *report.values()]:
-        check_replica(streams, *node)
+        check_replica(streams, lambda: node_settings[2](node_settings[0], node_settings[1]), node_figure)
     print(f"replica of the node's {args.node_detector} detector checked against its published figures on "
           f"{len(choice) + len(report)} files")
 

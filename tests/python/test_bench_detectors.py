@@ -1,13 +1,17 @@
 """The detector variants of bench/change_detector.py, on codes whose answer is known: a step
 detector must report a step between subjects and not a slow wander, and the per-frame variance
-fit must recover a variance that grows with a frame feature."""
+fit must recover a variance that grows with a frame feature; and its replica of the node's default
+detector gives, frame by frame, the statistic the node published on the sample recording."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
+import subprocess
+
 import numpy as np
+from node_paths import NODE, ROOT
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
 import change_detector  # noqa: E402
@@ -45,3 +49,19 @@ def test_frame_variances_recover_a_log_linear_variance():
     # log variance = log 400 - log kept: a slope of -1 per unit of log kept, in standardised units.
     assert abs(weights[0, 0] / scale[0] * -1 - 1.0) < 0.15, weights
     assert abs(weights[1, 0] / scale[0]) < 0.15, weights
+
+
+def test_the_replica_of_the_node_s_step_detector_is_the_node_s(tmp_path):
+    states = tmp_path / "states.jsonl"
+    subprocess.run([NODE, "evaluate", str(ROOT / "sim/samples/walk_switch.mcap"), "--config",
+                    str(ROOT / "config/replay.toml"), "--states", str(states)],
+                   check=True, capture_output=True, timeout=300)
+    streams = change_detector.load(states)
+    bundle = ROOT / "models/bundles/h200-fo-nodeid"
+    (threshold, shape, step), figure = change_detector.node_detector("step", bundle)
+    assert figure == "node_statistic"
+    assert any(f["node_statistic"] > 1.0 for _, frames, _ in streams for f in frames)
+    # Stops (SystemExit) at the first frame whose published statistic is not the replica's.
+    change_detector.check_replica(streams, lambda: step(threshold, shape), figure)
+    found, true, false, _ = change_detector.count(streams, threshold, shape, lambda f: (f["mean"], f["variance"]), step)
+    assert (found, true, false) == (1, 1, 0), "the sample's one swap, as the node finds it"
