@@ -17,10 +17,11 @@
 //!   variance floored at `step_min_variance`); a change when their mean squared standardized
 //!   distance exceeds `step_threshold`, tested once at least `switch_frames` frames precede the
 //!   window. Each frame enters clipped to within `step_clip` standard deviations of the
-//!   reference's mean, per dimension, so that one wild frame moves either side a bounded amount. The new identity starts from the window's frames. A subject's z_I wanders slowly
-//!   with its pose and view, which moves both sides together and so never adds up as it does in
-//!   the CUSUM against a fixed estimate; a change of subject is a step. Frames are fused (for the
-//!   published z_I) as they come, by the gate alone.
+//!   reference's mean, per dimension, so that one wild frame moves either side a bounded amount.
+//!   The new identity starts from the window's frames. A subject's z_I wanders slowly with its
+//!   pose and view, which moves both sides together and so never adds up as it does in the CUSUM
+//!   against a fixed estimate; a change of subject is a step. Frames are fused (for the published
+//!   z_I) as they come, by the gate alone.
 //!
 //! The fused variance has a floor (`min_shape_variance`; `min_identity_variance` for the identity
 //! projection's code below), which makes the estimate a slowly forgetting average: it follows the
@@ -162,6 +163,8 @@ pub struct ShapeFilter {
     /// projection's code, whose frames have unit variance.
     step_floor: f32,
     step_clip: f32,
+    /// The detector's threshold on its statistic (`TrackSettings::change_threshold`).
+    change_threshold: f32,
     /// The step detector's frames since the last change, at most `step_window + step_reference`.
     steps: VecDeque<StepFrame>,
     projection: Option<IdentityDirections>,
@@ -194,6 +197,7 @@ impl ShapeFilter {
             step_threshold: settings.step_threshold(),
             step_floor: settings.step_min_variance,
             step_clip: settings.step_clip,
+            change_threshold: settings.change_threshold(),
             steps: VecDeque::new(),
             projection: settings.identity_directions().cloned(),
             shape: Fusion::default(),
@@ -208,11 +212,7 @@ impl ShapeFilter {
 
     /// The change detector's threshold on `ShapeUpdate::statistic`.
     pub fn threshold(&self) -> f32 {
-        match self.detector {
-            ChangeDetector::Cusum => self.threshold,
-            ChangeDetector::Consecutive => self.switch_frames as f32,
-            ChangeDetector::Step => self.step_threshold,
-        }
+        self.change_threshold
     }
 
     /// Whether distances are taken on the identity projection's code (else on z_I).
@@ -281,7 +281,7 @@ impl ShapeFilter {
         }
         let before = self.steps.len().saturating_sub(self.step_window);
         self.statistic = if before >= self.switch_frames {
-            self.step_distance(before)
+            self.clip_newest_and_measure(before)
         } else {
             0.0
         };
@@ -330,11 +330,11 @@ impl ShapeFilter {
         }
     }
 
-    /// The step detector's statistic: the mean over dimensions of (m_w - m_r)^2 / (1/P_w + 1/P_r)
-    /// between the precision-weighted means of the last `step_window` frames (w) and the frames
-    /// before them (r, up to index `before`). The newest frame is first clipped to within
-    /// `step_clip` standard deviations (its own and m_r's) of m_r.
-    fn step_distance(&mut self, before: usize) -> f32 {
+    /// Clips the newest frame to within `step_clip` standard deviations (its own and m_r's) of
+    /// m_r, then returns the step detector's statistic: the mean over dimensions of
+    /// (m_w - m_r)^2 / (1/P_w + 1/P_r) between the precision-weighted means of the last
+    /// `step_window` frames (w) and the frames before them (r, up to index `before`).
+    fn clip_newest_and_measure(&mut self, before: usize) -> f32 {
         let width = self.steps[0].raw.len();
         let (reference, reference_precision) = step_side(self.steps.range(..before), width);
         let clip = self.step_clip as f64;
