@@ -379,7 +379,7 @@ def main():
         sys.exit(f"--hetero-without {unknown}: the features are {FEATURES}")
     choice = {p: load(p) for p in args.choice.split(",")}
     report = {p: load(p) for p in args.report.split(",")}
-    z_i_filter = functools.partial(ShapeFilter, floor=MIN_SHAPE_VARIANCE * z_i_spread(args.bundle) ** 2)
+    z_i_filter = node_detector("cusum", args.bundle)[0][2]  # the node's CUSUM on z_I, for the variants
     node_settings, node_figure = node_detector(args.node_detector, args.bundle, args.node_threshold, args.node_drift)
     for streams in [*choice.values(), *report.values()]:
         check_replica(streams, lambda: node_settings[2](node_settings[0], node_settings[1]), node_figure)
