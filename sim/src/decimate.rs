@@ -4,10 +4,11 @@
 //! than the training kit wants (the paper's SMAL meshes have 3,889). Collapsing the shortest edges
 //! first yields near-uniform edge lengths; each collapse is checked against the link condition
 //! (topology is kept) and against triangle flips (orientation is kept), and the merged vertex is
-//! projected back onto the implicit surface.
+//! projected back onto the implicit surface. Where collapses stall above the target, edge flips
+//! toward valence six (`even_out_valence`) let the next pass go on.
 
 use std::cmp::Reverse;
-use std::collections::BinaryHeap;
+use std::collections::{BinaryHeap, HashMap};
 
 use nalgebra::{Point3, Vector3};
 
@@ -30,9 +31,14 @@ fn smallest_angle_cosine(corners: [u32; 3], moved: u32, to: &Point3<f64>, positi
 }
 
 /// Ordered f64 for the heap (lengths are finite and non-negative).
-#[derive(Debug, Clone, Copy, PartialEq, PartialOrd)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 struct Length(f64);
 impl Eq for Length {}
+impl PartialOrd for Length {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
 impl Ord for Length {
     fn cmp(&self, other: &Self) -> std::cmp::Ordering {
         self.0.total_cmp(&other.0)
@@ -182,4 +188,83 @@ pub fn decimate(mesh: &Mesh, body: &Body, target_vertices: usize) -> Mesh {
         .map(|(t, _)| t.map(|v| new_index[v as usize]))
         .collect();
     Mesh { positions, triangles }
+}
+
+/// Flips edges so that vertex valences move toward six, the regular valence of a triangulated
+/// surface. Collapses stall on low-valence vertices (a collapse may not leave a vertex with fewer
+/// than three neighbours) and on the link condition around them; flips clear both. A flip must keep
+/// both triangles' orientation (each new normal within about 70 degrees of the pair's old ones) and
+/// may not create a sharper angle than the sharper of `MAX_COSINE` and the pair's sharpest.
+/// Returns how many edges were flipped.
+pub fn even_out_valence(mesh: &mut Mesh) -> usize {
+    let mut neighbours: Vec<Vec<u32>> = mesh.vertex_neighbours();
+    // Directed edge (from, to) -> the triangle that holds it.
+    let mut holder: HashMap<(u32, u32), u32> = HashMap::with_capacity(3 * mesh.triangles.len());
+    for (index, t) in mesh.triangles.iter().enumerate() {
+        for k in 0..3 {
+            holder.insert((t[k], t[(k + 1) % 3]), index as u32);
+        }
+    }
+    let third = |t: [u32; 3], a: u32, b: u32| {
+        t.into_iter()
+            .find(|&v| v != a && v != b)
+            .expect("a triangle has three corners")
+    };
+    let deviation = |valence: usize| (valence as i64 - 6).pow(2);
+    let mut flipped = 0;
+    for (a, b) in mesh.edges() {
+        let (Some(&t1), Some(&t2)) = (holder.get(&(a, b)), holder.get(&(b, a))) else {
+            continue;
+        };
+        let (c, d) = (
+            third(mesh.triangles[t1 as usize], a, b),
+            third(mesh.triangles[t2 as usize], a, b),
+        );
+        if c == d || neighbours[c as usize].contains(&d) {
+            continue;
+        }
+        let valence = |v: u32| neighbours[v as usize].len();
+        if valence(a) <= 3 || valence(b) <= 3 {
+            continue;
+        }
+        let before = deviation(valence(a)) + deviation(valence(b)) + deviation(valence(c)) + deviation(valence(d));
+        let after = deviation(valence(a) - 1)
+            + deviation(valence(b) - 1)
+            + deviation(valence(c) + 1)
+            + deviation(valence(d) + 1);
+        if after >= before {
+            continue;
+        }
+        // t1 runs a -> b -> c and t2 runs b -> a -> d; the new pair runs a -> d -> c and d -> b -> c.
+        let (new1, new2) = ([a, d, c], [d, b, c]);
+        let p = |v: u32| mesh.positions[v as usize];
+        let normal = |t: [u32; 3]| (p(t[1]) - p(t[0])).cross(&(p(t[2]) - p(t[0])));
+        let old_normal = normal([a, b, c]).normalize() + normal([b, a, d]).normalize();
+        let keeps_orientation = [new1, new2].into_iter().all(|t| {
+            let n = normal(t);
+            n.dot(&old_normal) > 0.3 * n.norm() * old_normal.norm()
+        });
+        let sharpest = |t: [u32; 3]| smallest_angle_cosine(t, t[0], &p(t[0]), &mesh.positions);
+        let sharpest_before = sharpest([a, b, c]).max(sharpest([b, a, d]));
+        let sharpest_after = sharpest(new1).max(sharpest(new2));
+        if !keeps_orientation || sharpest_after > MAX_COSINE.max(sharpest_before) {
+            continue;
+        }
+        mesh.triangles[t1 as usize] = new1;
+        mesh.triangles[t2 as usize] = new2;
+        holder.remove(&(a, b));
+        holder.remove(&(b, a));
+        holder.insert((a, d), t1);
+        holder.insert((d, c), t1);
+        holder.insert((c, a), t1);
+        holder.insert((d, b), t2);
+        holder.insert((b, c), t2);
+        holder.insert((c, d), t2);
+        neighbours[a as usize].retain(|&v| v != b);
+        neighbours[b as usize].retain(|&v| v != a);
+        neighbours[c as usize].push(d);
+        neighbours[d as usize].push(c);
+        flipped += 1;
+    }
+    flipped
 }
