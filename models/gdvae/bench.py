@@ -146,5 +146,7 @@ def report(figures: dict) -> str:
         f"  VAE step:    {v['it_per_s']:.2f} it/s at batch {v['batch']} ({v['clouds_per_s']:.0f} codes/s); "
         f"{v['operators']} operators a step",
         f"  making the batches takes about {min(share, 1.0):.0%} of the AE stage's time",
+        *([f"  memory:      {figures['peak_resident_mb'] / 1024:.1f} GB at the process's peak (resident)"]
+          if "peak_resident_mb" in figures else []),
     ])
 

@@ -298,6 +298,7 @@ def export_command(args) -> int:
 
 def bench_command(args) -> int:
     import json
+    import resource
     import time
 
     import torch
@@ -318,6 +319,7 @@ def bench_command(args) -> int:
     use_model_units(dataset, chosen.model_units)
     figures = bench(dataset, chosen, device, seconds=args.seconds)
     figures["dataset"] = {"meshes": len(dataset.meshes), "load_seconds": load_seconds}
+    figures["peak_resident_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: kB
     figures["command"] = "python -m gdvae " + " ".join(args.argv)
     print(json.dumps(figures, indent=2) if args.json else report(figures) + f"\n  command: {figures['command']}")
     return 0

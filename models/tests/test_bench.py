@@ -22,9 +22,12 @@ def test_bench_times_the_batch_maker_and_both_steps(tiny_dataset, capsys):
     assert all(figures[part]["operators"] > 10 for part in ("batch_maker", "ae_step", "vae_step"))
     assert figures["dataset"]["meshes"] > 0 and figures["dataset"]["load_seconds"] > 0
     assert figures["batch_maker"]["cache_mb"] > 0
+    # The process's peak holds at least the meshes' tensors.
+    assert figures["peak_resident_mb"] > figures["batch_maker"]["cache_mb"]
 
 
 def test_bench_prints_a_readable_report(tiny_dataset, capsys):
     assert main(["bench", str(tiny_dataset), "--recipe", "smoke", "--seconds", "0.2"]) == 0
     out = capsys.readouterr().out
     assert "batch maker:" in out and "AE step:" in out and "VAE step:" in out and "command: python -m gdvae" in out
+    assert "GB at the process's peak" in out
