@@ -11,7 +11,8 @@ them on the `--report` files (which nothing is chosen on):
 
 - `step`: the node's default detector on z_I: the last few frames' precision-weighted mean
   against the frames before them, a frame's variance floored at each of `--step-floor` (squared
-  z_I spreads, one variant each); window, reference length and threshold swept;
+  z_I spreads, one variant each) and each frame clipped as the node clips it (`step_clip`);
+  window, reference length and threshold swept;
 - `cusum`: the CUSUM on z_I (precision-weighted fusion, the gate, the held frames), the encoder's
   variances as the node scales them; threshold h and drift k swept;
 - `view`: the CUSUM with a frame's variances widened up to `--view-widen` times as the subject is
@@ -58,7 +59,7 @@ from gdvae.identity import fit_projection  # noqa: E402  (the kit's fit, which t
 GATE, SWITCH, MAX_HELD, MATURE, TOLERANCE = 2.0, 5, 300, 30, 10
 # The node's change detectors' defaults (config/default.toml), the step's floor in squared z_I spreads.
 CUSUM_DRIFT, CUSUM_THRESHOLD = 3.0, 10.0
-STEP_WINDOW, STEP_REFERENCE, STEP_THRESHOLD, STEP_MIN_VARIANCE, STEP_CLIP = 5, 15, 8.0, 0.1, 4.0
+STEP_WINDOW, STEP_REFERENCE, STEP_THRESHOLD, STEP_MIN_VARIANCE, STEP_CLIP = 5, 15, 7.0, 0.1, 4.0
 # The fused variance's floors (config/default.toml): z_I's in squared z_I spreads (the bundle's
 # calibration.z_I_spread; 0.3413 for a bundle without one), a projected code's in its own units.
 MIN_SHAPE_VARIANCE, MIN_IDENTITY_VARIANCE, UNCALIBRATED_Z_I_SPREAD = 3.434e-3, 4e-4, 0.3413
@@ -404,8 +405,8 @@ def main():
         for floor in [float(f) for f in args.step_floor.split(",")]:
             variants[f"z_I, step (frame variance floor {floor:g} squared z_I spreads)"] = (
                 lambda f: (f["mean"], f["variance"]),
-                list(itertools.product([2, 2.5, 3, 3.5, 4, 5, 6, 8, 10], step_shapes)),
-                functools.partial(StepDetector, floor=floor * spread**2),
+                list(itertools.product([2, 2.5, 3, 3.5, 4, 5, 6, 6.5, 7, 7.5, 8, 10], step_shapes)),
+                functools.partial(StepDetector, floor=floor * spread**2, clip=STEP_CLIP),
             )
     if "discriminant" in names:
         if not args.fit:

@@ -152,7 +152,7 @@ impl Default for TrackSettings {
             cusum_threshold: 10.0,
             step_window: 5,
             step_reference: 15,
-            step_threshold: 8.0,
+            step_threshold: 7.0,
             identity_step_threshold: 25.0,
             step_min_variance: 0.1,
             step_clip: 4.0,
