@@ -195,8 +195,7 @@ pub fn decimate(mesh: &Mesh, body: &Body, target_vertices: usize) -> Mesh {
 /// than three neighbours) and on the link condition around them; flips clear both. A flip must keep
 /// both triangles' orientation (each new normal within about 70 degrees of the pair's old ones) and
 /// may not create a sharper angle than the sharper of `MAX_COSINE` and the pair's sharpest.
-/// Returns how many edges were flipped.
-pub fn even_out_valence(mesh: &mut Mesh) -> usize {
+pub fn even_out_valence(mesh: &mut Mesh) {
     let mut neighbours: Vec<Vec<u32>> = mesh.vertex_neighbours();
     // Directed edge (from, to) -> the triangle that holds it.
     let mut holder: HashMap<(u32, u32), u32> = HashMap::with_capacity(3 * mesh.triangles.len());
@@ -211,7 +210,6 @@ pub fn even_out_valence(mesh: &mut Mesh) -> usize {
             .expect("a triangle has three corners")
     };
     let deviation = |valence: usize| (valence as i64 - 6).pow(2);
-    let mut flipped = 0;
     for (a, b) in mesh.edges() {
         let (Some(&t1), Some(&t2)) = (holder.get(&(a, b)), holder.get(&(b, a))) else {
             continue;
@@ -264,7 +262,5 @@ pub fn even_out_valence(mesh: &mut Mesh) -> usize {
         neighbours[b as usize].retain(|&v| v != a);
         neighbours[c as usize].push(d);
         neighbours[d as usize].push(c);
-        flipped += 1;
     }
-    flipped
 }
