@@ -1,5 +1,6 @@
 //! Mesh validity, skinning and isometry.
 
+use gdvae_sim::decimate::even_out_valence;
 use gdvae_sim::distortion::measure_distortion;
 use gdvae_sim::family::{Family, PoseMode, Subject, SubjectError, DEFAULT_VERTEX_COUNT};
 use gdvae_sim::mesh::{Mesh, MeshDefect};
@@ -201,5 +202,35 @@ fn a_subject_meshed_on_a_fine_grid_is_still_decimated_to_the_vertex_count_asked_
         subject.rest_mesh.min_angle_degrees() > 0.2,
         "min angle {}",
         subject.rest_mesh.min_angle_degrees()
+    );
+}
+
+#[test]
+fn flips_toward_valence_six_keep_the_surface_closed_and_its_volume() {
+    let deviation = |mesh: &Mesh| -> usize {
+        mesh.vertex_neighbours()
+            .iter()
+            .map(|n| (n.len() as i64 - 6).pow(2) as usize)
+            .sum()
+    };
+    let subject = Subject::new(Family::Biped, Family::Biped.mean_beta()).unwrap();
+    let mut mesh = subject.rest_mesh.clone();
+    let before = mesh.validate().expect("valid before");
+    let deviation_before = deviation(&mesh);
+    even_out_valence(&mut mesh);
+    let after = mesh
+        .validate()
+        .expect("a flip left the surface closed, manifold and outward");
+    assert_eq!(after.vertices, before.vertices, "flips move no vertex");
+    assert!(
+        deviation(&mesh) < deviation_before,
+        "valences no nearer six: {} against {deviation_before}",
+        deviation(&mesh)
+    );
+    assert!(
+        (after.volume - before.volume).abs() < 0.01 * before.volume,
+        "volume {} against {}",
+        after.volume,
+        before.volume
     );
 }
